@@ -1,0 +1,36 @@
+# sonarsim: the two README commands are `make demo` and `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+PY      = $(VENV)/bin/python
+STAMP   = $(VENV)/.installed
+DEMO   ?= demo_out
+
+.PHONY: install demo test test-fast bench clean llvm
+
+install: $(STAMP) llvm
+
+# Reinstall only when the project metadata changes (idempotent).
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test,bench]"
+	touch $(STAMP)
+
+# Dr.Jit's CPU backend needs libLLVM >= 16 (Debian 12's default 15 aborts).
+llvm: $(STAMP)
+	@$(PY) scripts/ensure_llvm.py
+
+demo: install
+	$(PY) scripts/demo.py --out $(DEMO)
+
+test: install
+	$(PY) -m pytest -q
+
+test-fast: install
+	$(PY) -m pytest -q -m "not slow"
+
+bench: install
+	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) $(DEMO) .pytest_cache build *.egg-info

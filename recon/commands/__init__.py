@@ -1,0 +1,1 @@
+"""``recon`` subcommands, one module each (see :mod:`sonarsim.cli_common`)."""

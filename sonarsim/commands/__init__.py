@@ -1,0 +1,1 @@
+"""``sonarsim`` subcommands, one module each (see :mod:`sonarsim.cli_common`)."""
