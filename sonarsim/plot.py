@@ -1,0 +1,287 @@
+"""Quick-look pictures of a :class:`~sonarsim.dataset.SonarDataset`.
+
+:func:`plot_dataset` writes into a directory:
+
+- ``echo_raw.png`` / ``echo_raw.exr``: the echo image, ping (rows) × time sample (columns).
+  The PNG shows the envelope |analytic(waveform)| in dB re its maximum; the EXR keeps the
+  raw float32 waveform samples (channel ``Y``).
+- ``echo_mf.png`` / ``echo_mf.exr``: the same for the matched-filtered analytic signal
+  (REFERENCE_SPEC §1.6 step 4); EXR channel ``Y`` = magnitude (plus ``re``, ``im`` with
+  ``complex_exr``).
+- ``pulse.png``: the pulse against time and its spectrum in dB.
+- ``trajectory.png``: TX and RX positions in 3-D with the scene box and a few boresights.
+
+PNG echo images of more than ``MAX_PNG_ROWS`` pings show the maximum over groups of
+consecutive pings (the axis stays in ping index). Horizontal axes of the echo images are the **one-way range c·t/2** (metres), with the
+round-trip path c·t on the top axis; t = (start_sample + k)/fs is the time after transmission.
+In the EXR files row i is ping i and column k is sample k (its time is in the header).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from . import geometry, signals
+from .errors import InputError
+
+FIGURE_DPI = 120
+_MF_CHUNK = 2048        # pings per matched-filter FFT batch (bounds memory for big scans)
+MAX_PNG_ROWS = 2000     # PNG echo images max-pool consecutive pings down to this many rows
+_MAX_TRAJECTORY_POINTS = 4000
+
+
+def _atomic_target(path: Path):
+    """(temporary path in the same directory, finaliser that renames it onto ``path``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def _replace_or_clean(tmp: Path, path: Path, ok: bool) -> None:
+    if ok:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)      # mkstemp creates 0600; give the usual mode
+        os.replace(tmp, path)
+    elif tmp.exists():
+        tmp.unlink()
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray], comments: str = "") -> Path:
+    """Write float32 image channels (each [H, W]) to an OpenEXR file, atomically."""
+    import OpenEXR
+
+    path = Path(path)
+    arrays = {name: np.ascontiguousarray(a, dtype=np.float32) for name, a in channels.items()}
+    shapes = {a.shape for a in arrays.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise InputError(f"{path}: EXR channels must be 2-D and of one shape, got {shapes}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if comments:
+        header["comments"] = comments
+    tmp = _atomic_target(path)
+    ok = False
+    try:
+        with OpenEXR.File(header, arrays) as f:
+            f.write(str(tmp))
+        ok = True
+    finally:
+        _replace_or_clean(tmp, path, ok)
+    return path
+
+
+def _save_figure(fig, path: Path) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    tmp = _atomic_target(path)
+    ok = False
+    try:
+        fig.savefig(tmp, dpi=FIGURE_DPI, format="png")
+        ok = True
+    finally:
+        _replace_or_clean(tmp, path, ok)
+    return path
+
+
+def to_db(magnitude: np.ndarray, dynamic_range_db: float) -> np.ndarray:
+    """20·log10(magnitude / max) clipped to [−dynamic_range_db, 0] (float32)."""
+    mag = np.asarray(magnitude, dtype=np.float32)
+    peak = float(mag.max()) if mag.size else 0.0
+    if peak <= 0:
+        return np.full(mag.shape, -dynamic_range_db, dtype=np.float32)
+    floor = peak * 10.0 ** (-dynamic_range_db / 20.0)
+    return (20.0 * np.log10(np.maximum(mag, floor) / peak)).astype(np.float32)
+
+
+def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PNG_ROWS,
+                keep_complex: bool = False) -> dict[str, np.ndarray]:
+    """Envelopes and matched-filter outputs of ``waveforms`` [N, T], computed in ping batches.
+
+    Returns ``raw_rows`` and ``mf_rows`` (float32 [R, T], R <= max_rows): the envelope
+    |analytic(waveform)| and the matched-filter magnitude, each max-pooled over groups of
+    ceil(N / max_rows) consecutive pings (for the PNGs); ``mf`` (float32 [N, T]) the full
+    matched-filter magnitude; with ``keep_complex`` also ``mf_re``/``mf_im`` [N, T].
+    """
+    n, t = waveforms.shape
+    group = -(-n // max(1, min(n, max_rows)))
+    rows = -(-n // group)
+    chunk = group * max(1, _MF_CHUNK // group)
+    pulse = np.asarray(pulse, dtype=np.float64)[:t]
+    out = {"raw_rows": np.empty((rows, t), np.float32), "mf_rows": np.empty((rows, t), np.float32),
+           "mf": np.empty((n, t), np.float32)}
+    if keep_complex:
+        out["mf_re"] = np.empty((n, t), np.float32)
+        out["mf_im"] = np.empty((n, t), np.float32)
+
+    def pool(block: np.ndarray) -> np.ndarray:
+        pad = -len(block) % group
+        if pad:
+            block = np.concatenate([block, np.zeros((pad, t), block.dtype)])
+        return block.reshape(-1, group, t).max(axis=1)
+
+    for start in range(0, n, chunk):
+        block = waveforms[start:start + chunk].astype(np.float64)
+        r0, r1 = start // group, -(-(start + len(block)) // group)
+        out["raw_rows"][r0:r1] = pool(np.abs(signals.analytic(block)))
+        mf = signals.matched_filter(block, pulse)
+        mag = np.abs(mf).astype(np.float32)
+        out["mf"][start:start + len(block)] = mag
+        out["mf_rows"][r0:r1] = pool(mag)
+        if keep_complex:
+            out["mf_re"][start:start + len(block)] = mf.real
+            out["mf_im"][start:start + len(block)] = mf.imag
+    out["group"] = group
+    return out
+
+
+def _range_axis(ds) -> tuple[float, float]:
+    """One-way range (m) at the first and last sample: c·(start_sample + k)/fs / 2."""
+    n = ds.waveforms.shape[1]
+    first = ds.start_sample * ds.sound_speed / ds.fs / 2.0
+    last = (ds.start_sample + n - 1) * ds.sound_speed / ds.fs / 2.0
+    return first, last
+
+
+def _echo_figure(image_db: np.ndarray, ds, title: str, dynamic_range_db: float, group: int):
+    from matplotlib.figure import Figure
+
+    r0, r1 = _range_axis(ds)
+    half_bin = 0.25 * ds.sound_speed / ds.fs
+    n = image_db.shape[0] * group
+    fig = Figure(figsize=(8, 6))
+    ax = fig.add_subplot()
+    im = ax.imshow(image_db, aspect="auto", origin="upper", cmap="viridis",
+                   vmin=-dynamic_range_db, vmax=0.0, interpolation="antialiased",
+                   extent=(r0 - half_bin, r1 + half_bin, n - 0.5, -0.5))
+    ax.set_xlabel("one-way range c·t/2 [m]  (t after transmission)")
+    ax.set_ylabel("ping index" + (f" (max over groups of {group})" if group > 1 else ""))
+    top = ax.secondary_xaxis("top", functions=(lambda r: 2.0 * r, lambda p: 0.5 * p))
+    top.set_xlabel("round-trip path c·t [m]")
+    ax.set_title(f"{title}\n{ds.source}, c = {ds.sound_speed:.2f} m/s, fs = {ds.fs / 1e3:g} kHz",
+                 fontsize=9)
+    fig.colorbar(im, ax=ax, label="dB re max")
+    fig.tight_layout()
+    return fig
+
+
+def _pulse_figure(pulse: np.ndarray, fs: float):
+    from matplotlib.figure import Figure
+
+    p = np.asarray(pulse, dtype=np.float64)
+    fig = Figure(figsize=(10, 4))
+    ax_t, ax_f = fig.subplots(1, 2)
+    ax_t.plot(np.arange(p.size) / fs * 1e3, p, lw=1)
+    ax_t.set_xlabel("time [ms]")
+    ax_t.set_ylabel("amplitude")
+    ax_t.set_title(f"pulse ({p.size} samples at {fs / 1e3:g} kHz)")
+    n_fft = max(4096, int(2 ** np.ceil(np.log2(p.size))))
+    spectrum = np.abs(np.fft.rfft(p, n_fft))
+    freq = np.fft.rfftfreq(n_fft, 1.0 / fs)
+    ax_f.plot(freq / 1e3, to_db(spectrum, 80.0), lw=1)
+    ax_f.set_xlabel("frequency [kHz]")
+    ax_f.set_ylabel("magnitude [dB re max]")
+    ax_f.set_ylim(-80, 3)
+    ax_f.set_title("spectrum")
+    ax_f.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def _box_edges(box: "geometry.SceneBox"):
+    c = box.corners()
+    for i in range(8):
+        for axis in range(3):
+            j = i | (1 << axis)
+            if j != i:
+                yield c[i], c[j]
+
+
+def _trajectory_figure(ds, box: "geometry.SceneBox"):
+    from matplotlib.figure import Figure
+
+    n = ds.tx.shape[0]
+    step = max(1, n // _MAX_TRAJECTORY_POINTS)
+    fig = Figure(figsize=(7, 7))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(*ds.tx[::step].T, s=2, c="tab:red", label="TX")
+    ax.scatter(*ds.rx[::step].T, s=2, c="tab:blue", label="RX")
+    for a, b in _box_edges(box):
+        ax.plot(*np.stack([a, b]).T, c="k", lw=0.8)
+    arrows = np.linspace(0, n - 1, min(n, 12)).astype(int)
+    length = 0.25 * float(np.linalg.norm(ds.tx[0] - box.center))
+    ax.quiver(*ds.tx[arrows].T, *(ds.boresight[arrows] * length).T, color="tab:orange",
+              lw=0.8, label="boresight")
+    if getattr(ds, "gt_vertices", None) is not None and len(ds.gt_vertices):
+        v = np.asarray(ds.gt_vertices)
+        v = v[:: max(1, len(v) // 3000)]
+        ax.scatter(*v.T, s=1, c="0.4", label="ground-truth mesh")
+    pts = np.concatenate([ds.tx, ds.rx, box.corners()])
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(f"{n} pings; box {box.lo.tolist()} – {box.hi.tolist()} m", fontsize=9)
+    ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def default_box(ds) -> "geometry.SceneBox":
+    """The scene box recorded in ``ds.meta`` (box_lo/box_hi), else by source kind."""
+    meta = getattr(ds, "meta", None) or {}
+    if "box_lo" in meta and "box_hi" in meta:
+        try:
+            return geometry.SceneBox(np.asarray(meta["box_lo"], float),
+                                     np.asarray(meta["box_hi"], float))
+        except (InputError, ValueError, TypeError):
+            pass
+    if str(ds.source).startswith("airsas"):
+        return geometry.AIRSAS_REAL_BOX
+    return geometry.SIM_BOX
+
+
+def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = None,
+                 dynamic_range_db: float = 60.0, complex_exr: bool = False) -> list[Path]:
+    """Write the echo images, pulse and trajectory pictures of ``ds`` into ``out_dir``.
+
+    Returns the written paths. ``dynamic_range_db`` (> 0) sets the PNG colour range;
+    ``complex_exr`` adds the matched filter's real and imaginary parts to ``echo_mf.exr``.
+    """
+    if not (np.isfinite(dynamic_range_db) and dynamic_range_db > 0):
+        raise InputError(f"dynamic range must be > 0 dB, got {dynamic_range_db}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    box = default_box(ds) if box is None else box
+    waveforms = np.asarray(ds.waveforms, dtype=np.float32)
+    r0, r1 = _range_axis(ds)
+    axis_note = (f"rows = pings 0..{waveforms.shape[0] - 1}; column k = sample start_sample+k "
+                 f"(start_sample {ds.start_sample}) at t = (start_sample+k)/fs, fs = {ds.fs} Hz, "
+                 f"c = {ds.sound_speed} m/s; one-way range {r0:.6g}..{r1:.6g} m")
+    images = echo_images(waveforms, ds.pulse, keep_complex=complex_exr)
+    group = images["group"]
+    written = [
+        _save_figure(_echo_figure(to_db(images.pop("raw_rows"), dynamic_range_db), ds,
+                                  "raw waveforms: envelope", dynamic_range_db, group),
+                     out / "echo_raw.png"),
+        write_exr(out / "echo_raw.exr", {"Y": waveforms}, f"raw waveforms; {axis_note}"),
+        _save_figure(_echo_figure(to_db(images.pop("mf_rows"), dynamic_range_db), ds,
+                                  "matched-filtered analytic signal", dynamic_range_db, group),
+                     out / "echo_mf.png"),
+    ]
+    channels = {"Y": images.pop("mf")}
+    if complex_exr:
+        channels.update(re=images.pop("mf_re"), im=images.pop("mf_im"))
+    written.append(write_exr(out / "echo_mf.exr", channels,
+                             "matched-filtered analytic signal (Y = magnitude"
+                             + (", re/im = complex value" if complex_exr else "")
+                             + f"); {axis_note}"))
+    del images, channels
+
+    written.append(_save_figure(_pulse_figure(ds.pulse, ds.fs), out / "pulse.png"))
+    written.append(_save_figure(_trajectory_figure(ds, box), out / "trajectory.png"))
+    return written
