@@ -1,0 +1,1 @@
+"""Scene files shipped with sonarsim (TOML; see docs/scenes.md). Data only."""
