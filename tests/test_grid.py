@@ -1,0 +1,82 @@
+"""recon.grid: voxel-centre convention, ordering, defaults and input errors."""
+import numpy as np
+import pytest
+
+from recon.grid import Grid, scene_box_of
+from sonarsim import geometry
+from sonarsim.errors import InputError
+
+
+def test_centres_are_linspace_with_endpoints_and_single_voxel_at_lo():
+    g = Grid([[-0.1, 0.1], [0.0, 0.3], [0.05, 0.05]], (5, 4, 1))
+    x, y, z = g.axes()
+    np.testing.assert_allclose(x, [-0.1, -0.05, 0.0, 0.05, 0.1])
+    np.testing.assert_allclose(y, [0.0, 0.1, 0.2, 0.3])
+    np.testing.assert_allclose(z, [0.05])
+    np.testing.assert_allclose(g.spacing, [0.05, 0.1, 0.0])
+    assert g.size == 20
+
+
+def test_points_are_c_order_over_x_y_z():
+    g = Grid([[0, 1], [0, 2], [0, 3]], (2, 3, 4))
+    pts = g.points()
+    assert pts.shape == (24, 3)
+    vol = pts.reshape(2, 3, 4, 3)
+    # Index (ix, iy, iz) of the reshaped array sits at (x[ix], y[iy], z[iz]).
+    x, y, z = g.axes()
+    for ix, iy, iz in [(0, 0, 0), (1, 2, 3), (1, 0, 2), (0, 1, 3)]:
+        np.testing.assert_allclose(vol[ix, iy, iz], [x[ix], y[iy], z[iz]])
+        np.testing.assert_allclose(g.position_of((ix, iy, iz)), [x[ix], y[iy], z[iz]])
+        assert g.index_of(vol[ix, iy, iz] + 0.1 * g.spacing) == (ix, iy, iz)
+
+
+def test_single_voxel_axis_may_have_hi_below_lo_ignored_but_not_reversed():
+    Grid([[0, 1], [0, 1], [0.2, 0.2]], (3, 3, 1))      # 2-D grid at z = 0.2
+    with pytest.raises(InputError):
+        Grid([[0, 1], [0, 1], [0.3, 0.2]], (3, 3, 1))
+
+
+@pytest.mark.parametrize("bounds, shape", [
+    ([[0, 1], [0, 1]], (2, 2, 2)),                   # bounds not [3, 2]
+    ([[0, 1], [0, 1], [0, np.nan]], (2, 2, 2)),      # NaN
+    ([[1, 0], [0, 1], [0, 1]], (2, 2, 2)),           # reversed
+    ([[0, 1], [0, 0], [0, 1]], (2, 2, 2)),           # empty extent with 2 voxels
+    ([[0, 1], [0, 1], [0, 1]], (2, 2)),              # two axes
+    ([[0, 1], [0, 1], [0, 1]], (2, 0, 2)),           # zero voxels
+    ([[0, 1], [0, 1], [0, 1]], (2, 2.5, 2)),         # non-integer
+    ([[0, 1], [0, 1], [0, 1]], ("a", 2, 2)),
+])
+def test_bad_bounds_or_shape_raise_input_error(bounds, shape):
+    with pytest.raises(InputError):
+        Grid(bounds, shape)
+
+
+def test_flat_six_number_bounds_accepted():
+    g = Grid([0, 1, 2, 3, 4, 5], (2, 2, 2))
+    np.testing.assert_allclose(g.bounds, [[0, 1], [2, 3], [4, 5]])
+
+
+class _DS:
+    def __init__(self, meta):
+        self.meta = meta
+
+
+def test_default_bounds_from_dataset_box_else_sim_box():
+    g = Grid.from_dataset(_DS({"box_lo": [-0.125, -0.125, 0.0], "box_hi": [0.125, 0.125, 0.2]}),
+                          (3, 3, 3))
+    np.testing.assert_allclose(g.bounds, [[-0.125, 0.125], [-0.125, 0.125], [0.0, 0.2]])
+    g = Grid.from_dataset(_DS({"box": [[-0.1, -0.2, 0.0], [0.1, 0.2, 0.25]]}), (3, 3, 3))
+    np.testing.assert_allclose(g.bounds, [[-0.1, 0.1], [-0.2, 0.2], [0.0, 0.25]])
+    g = Grid.from_dataset(_DS({}), (3, 3, 3))
+    np.testing.assert_allclose(g.bounds[:, 0], geometry.SIM_BOX.lo)
+    np.testing.assert_allclose(g.bounds[:, 1], geometry.SIM_BOX.hi)
+    g = Grid.from_dataset(_DS({}), (3, 3, 1), bounds=[[0, 1], [0, 1], [0, 0]])
+    assert g.shape == (3, 3, 1)
+    with pytest.raises(InputError):
+        scene_box_of(_DS({"box_lo": [0, 0], "box_hi": [1, 1]}))
+
+
+def test_points_range_matches_points():
+    g = Grid([[0, 1], [-1, 1], [0, 0.5]], (4, 3, 5))
+    np.testing.assert_allclose(g.points_range(7, 29), g.points()[7:29])
+    np.testing.assert_allclose(g.points_range(50, 100), g.points()[50:])
