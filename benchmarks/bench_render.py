@@ -1,0 +1,227 @@
+"""Benchmark: transient rendering throughput of the ``sonar_transient`` wavefront integrator.
+
+Scene: the shared bunny mesh (metres, standing on z = 0) on a 0.4 × 0.4 m diffuse ground.
+Poses: an evenly spread subset of the reference cylindrical scan (360 angles × 150 heights),
+reference crop window (14 360 bins of c/(fs·20)), cone beams of 30°.
+
+Three ways of doing the same job are timed:
+  wavefront      sonarsim.render.iter_render: all poses of a chunk × all paths in one kernel
+  per-pose       the same integrator, one kernel launch per pose (a Python loop)
+  numpy+mitsuba  a straightforward implementation: a Python loop over poses, NumPy for
+                 sampling/shading/binning, Mitsuba only to trace the rays of each bounce
+
+Run:  .venv/bin/python benchmarks/bench_render.py [--poses 2000] [--paths 10000] [--bounces 3]
+The machine may be shared: timings are noisy; run once on an idle machine for numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+MESH = ROOT.parent / "shared" / "data" / "meshes" / "bunny.obj"
+FULL_SCAN_POSES = 54_000
+TARGET_SECONDS, TARGET_GB = 90.0, 2.0
+
+
+def bunny_scene(mi, mesh: Path):
+    diffuse = {"type": "diffuse", "reflectance": {"type": "spectrum", "value": 1.0}}
+    return mi.load_dict({
+        "type": "scene",
+        "bunny": {"type": "obj", "filename": str(mesh), "bsdf": diffuse},
+        "ground": {"type": "rectangle", "bsdf": diffuse,
+                   "to_world": mi.ScalarTransform4f().scale([0.2, 0.2, 1.0])},
+    })
+
+
+def peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20   # Linux: KiB
+
+
+def _basis(b: np.ndarray):
+    """Two unit vectors orthogonal to unit ``b`` [3]."""
+    helper = np.array([1.0, 0, 0]) if abs(b[0]) < 0.9 else np.array([0, 1.0, 0])
+    s = np.cross(b, helper)
+    s /= np.linalg.norm(s)
+    return s, np.cross(b, s)
+
+
+def numpy_pose(mi, scene, tx, rx, b_tx, b_rx, window, paths, bounces, rng, half_angle):
+    """One pose, straightforwardly: NumPy everywhere except Mitsuba's ray queries."""
+    cos_cut = math.cos(half_angle)
+    cos_t = 1 - rng.random(paths) * (1 - cos_cut)
+    sin_t, phi = np.sqrt(1 - cos_t ** 2), 2 * np.pi * rng.random(paths)
+    s, t = _basis(b_tx)
+    dirs = (np.outer(sin_t * np.cos(phi), s) + np.outer(sin_t * np.sin(phi), t)
+            + np.outer(cos_t, b_tx))
+    origins = np.tile(tx, (paths, 1))
+    throughput = np.full(paths, 2 * np.pi * (1 - cos_cut) / paths)
+    length = np.zeros(paths)
+    hist = np.zeros((bounces, window.n_bins))
+    rays = 0
+    for bounce in range(bounces):
+        rays += int(np.count_nonzero(throughput))
+        ray = mi.Ray3f(mi.Point3f(*origins.T.astype(np.float32)),
+                       mi.Vector3f(*dirs.T.astype(np.float32)))
+        si = scene.ray_intersect(ray)
+        hit = si.is_valid().numpy()
+        albedo = si.bsdf(ray).eval_diffuse_reflectance(si).numpy().reshape(-1)
+        p, n, dist_t = si.p.numpy().T, si.n.numpy().T, si.t.numpy()
+        rx_points = mi.Point3f(*np.tile(rx, (len(origins), 1)).T.astype(np.float32))  # no literals
+        shadow = scene.ray_test(si.spawn_ray_to(rx_points))
+        blocked = shadow.numpy()
+        keep = hit & (throughput > 0)
+        rays += int(np.count_nonzero(keep))
+        n = np.where((np.einsum("ij,ij->i", n, dirs) > 0)[:, None], -n, n)
+        length = length + np.where(keep, dist_t, 0)
+        to_rx = rx - p
+        r = np.linalg.norm(to_rx, axis=1)
+        w_rx = to_rx / r[:, None]
+        cos_o = np.einsum("ij,ij->i", n, w_rx)
+        in_rx_beam = (-w_rx @ b_rx) >= cos_cut
+        value = throughput * albedo / np.pi * np.maximum(cos_o, 0) / r ** 2
+        ok = keep & ~blocked & (cos_o > 0) & in_rx_beam
+        u = (length + r - window.path_start) / window.bin_width - 0.5
+        j0 = np.floor(u[ok]).astype(np.int64)
+        f = u[ok] - j0
+        for j, w in ((j0, 1 - f), (j0 + 1, f)):
+            inside = (j >= 0) & (j < window.n_bins)
+            np.add.at(hist[bounce], j[inside], (value[ok] * w)[inside])
+        if bounce + 1 == bounces:
+            break
+        # Continue with cosine-weighted directions. Dead paths stay (with zero weight and
+        # a harmless ray) so every bounce has the same array sizes: Dr.Jit then reuses its
+        # compiled kernels from pose to pose.
+        p = np.where(keep[:, None], p, 0.0)
+        n = np.where(keep[:, None], n, [0, 0, 1.0])
+        length, throughput = np.where(keep, length, 0.0), np.where(keep, throughput * albedo, 0.0)
+        u1, u2 = rng.random(paths), rng.random(paths)
+        rad, ang = np.sqrt(u1), 2 * np.pi * u2
+        helper = np.where((np.abs(n[:, 0]) < 0.9)[:, None], [1.0, 0, 0], [0, 1.0, 0])
+        s = np.cross(n, helper)
+        s /= np.linalg.norm(s, axis=1, keepdims=True)
+        t = np.cross(n, s)
+        dirs = ((rad * np.cos(ang))[:, None] * s + (rad * np.sin(ang))[:, None] * t
+                + np.sqrt(np.maximum(0.0, 1 - u1))[:, None] * n)
+        origins = p + 1e-5 * n
+    return hist.astype(np.float32), rays
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=2000)
+    ap.add_argument("--paths", type=int, default=10_000)
+    ap.add_argument("--bounces", type=int, default=3)
+    ap.add_argument("--baseline-poses", type=int, default=3)
+    ap.add_argument("--mesh", type=Path, default=MESH)
+    args = ap.parse_args(argv)
+    if not args.mesh.is_file():
+        print(f"mesh not found: {args.mesh}", file=sys.stderr)
+        return 2
+
+    from sonarsim import geometry, render, runtime
+    mi = runtime.mitsuba()
+    import drjit as dr
+
+    scene = bunny_scene(mi, args.mesh)
+    all_poses = geometry.trajectory("cylindrical")
+    pick = np.linspace(0, len(all_poses) - 1, args.poses).round().astype(int)
+    poses = all_poses[pick]
+    window = render.path_window(scene, all_poses, box=geometry.SIM_BOX)
+    chunk = render.choose_chunk_size(args.paths, args.bounces, window.n_bins)
+    n_tri = sum(s.face_count() for s in scene.shapes() if isinstance(s, mi.Mesh))
+    print(f"scene: bunny {n_tri} triangles + ground; window {window.n_bins} bins of "
+          f"{window.bin_width * 1e3:.4f} mm from {window.path_start:.4f} m; "
+          f"{args.poses} of {len(all_poses)} poses x {args.paths} paths x {args.bounces} bounces; "
+          f"chunk {chunk} poses")
+
+    # Compile (or load from Dr.Jit's disk cache) before timing.
+    t0 = time.perf_counter()
+    integ = render.make_integrator(args.bounces)
+    p = poses[:2]
+    integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
+                            window.path_start, window.bin_width, window.n_bins, 100, 0)
+    warmup = time.perf_counter() - t0
+
+    # Rays per path, from an instrumented run on a few poses.
+    stats: dict = {}
+    p = poses[:: max(1, args.poses // 20)]
+    integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
+                            window.path_start, window.bin_width, window.n_bins, args.paths, 0,
+                            ray_stats=stats)
+    rays_per_path = (stats["intersect"] + stats["shadow"]) / (len(p) * args.paths)
+
+    rows = []
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    energy = np.zeros(args.bounces)
+    chunk_times, t_prev = [], t0
+    for sl, hist in render.iter_render(scene, poses, paths_per_pose=args.paths,
+                                       bounces=args.bounces, window=window, progress=False):
+        energy += hist.sum(axis=(0, 2), dtype=np.float64)
+        now = time.perf_counter()
+        chunk_times.append((sl.stop - sl.start, now - t_prev))
+        t_prev = now
+    dr.sync_thread()
+    wave_s = time.perf_counter() - t0
+    wave_rss = peak_rss_gb()
+    rows.append(("wavefront (chunks)", args.poses, args.paths, wave_s))
+
+    k = min(args.poses, max(1, 10 * args.baseline_poses))
+    t0 = time.perf_counter()
+    for i in range(k):
+        p = poses[i]
+        integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
+                                window.path_start, window.bin_width, window.n_bins,
+                                args.paths, 0, pose_offset=i)
+    rows.append(("per-pose launches", k, args.paths, time.perf_counter() - t0))
+
+    rng = np.random.default_rng(0)
+    p = poses[0]        # warm-up: compile the baseline's Mitsuba kernels
+    numpy_pose(mi, scene, p.tx[0], p.rx[0], p.tx_boresight[0], p.rx_boresight[0],
+               window, 100, args.bounces, rng, math.radians(15.0))
+    t0 = time.perf_counter()
+    np_rays = 0
+    for i in range(args.baseline_poses):
+        p = poses[i]
+        _, r = numpy_pose(mi, scene, p.tx[0], p.rx[0], p.tx_boresight[0], p.rx_boresight[0],
+                          window, args.paths, args.bounces, rng, math.radians(15.0))
+        np_rays += r
+    rows.append(("numpy+mitsuba/pose", args.baseline_poses, args.paths, time.perf_counter() - t0))
+
+    print(f"\n{'method':<20} {'poses':>6} {'paths/s':>12} {'rays/s':>12} {'s/pose':>10} "
+          f"{'full scan':>11} {'speed-up':>9}")
+    base_rate = rows[-1][1] * rows[-1][2] / rows[-1][3]
+    for name, n, paths, secs in rows:
+        rate = n * paths / secs
+        full = FULL_SCAN_POSES * paths / rate
+        print(f"{name:<20} {n:>6} {rate:>12.3e} {rate * rays_per_path:>12.3e} {secs / n:>10.4f} "
+              f"{full:>10.0f}s {rate / base_rate:>8.1f}x")
+    full_scan = FULL_SCAN_POSES * args.paths / (args.poses * args.paths / wave_s)
+    print("\nwavefront chunks (poses, seconds): "
+          + ", ".join(f"({n}, {t:.2f})" for n, t in chunk_times)
+          + "  [the first chunk also pays first-touch page faults of its buffers]")
+    if len(chunk_times) > 1:
+        steady = sum(t for _, t in chunk_times[1:]) / sum(n for n, _ in chunk_times[1:])
+        print(f"steady-state: {args.paths / steady:.3e} paths/s -> full scan "
+              f"{FULL_SCAN_POSES * steady:.0f} s")
+    print(f"\nrays per path (intersections + shadow rays): {rays_per_path:.2f} "
+          f"(numpy baseline, on its {args.baseline_poses} poses: "
+          f"{np_rays / (args.baseline_poses * args.paths):.2f})")
+    print(f"compile/warm-up: {warmup:.2f} s; mean energy per pose by bounce: "
+          f"{', '.join(f'{e / args.poses:.3e}' for e in energy)}")
+    print(f"peak RSS during the wavefront render: {wave_rss:.2f} GB (target <= {TARGET_GB} GB)")
+    print(f"projected full scan ({FULL_SCAN_POSES} poses x {args.paths} paths): {full_scan:.0f} s "
+          f"(target <= {TARGET_SECONDS:.0f} s) -> "
+          f"{'OK' if full_scan <= TARGET_SECONDS and wave_rss <= TARGET_GB else 'MISSED'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

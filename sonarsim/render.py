@@ -1,0 +1,213 @@
+"""Chunked transient rendering: many sonar poses through the ``sonar_transient`` integrator.
+
+:func:`render` returns a :class:`sonarsim.dataset.Transients` (float32 [N, B, T] energy
+histograms over round-trip path length, one per bounce); :func:`iter_render` yields the
+same histograms chunk by chunk for streaming. Poses are split into chunks whose histogram
+buffers fit a memory budget and whose lane count (poses × paths) stays below 2³²; each
+chunk is one Dr.Jit kernel launch, and every chunk reuses the same compiled kernel.
+
+The path-length window is ``path_range`` if given, else the reference's crop window
+(:func:`sonarsim.geometry.crop_window`) over the scene box (``box``, by default the
+bounding box of the Mitsuba scene) and the poses. Bin width w = sound_speed / (fs ·
+oversample); bin j covers [path_start + j·w, path_start + (j+1)·w).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator, Mapping
+
+import numpy as np
+
+from .dataset import Transients
+from .errors import InputError
+from .geometry import Poses, SceneBox, crop_window
+
+DEFAULT_BEAMS = {"tx_beam": "cone", "tx_beamwidth": 30.0, "rx_beam": "cone", "rx_beamwidth": 30.0}
+BEAM_KEYS = tuple(DEFAULT_BEAMS) + ("shading_normals",)
+DEFAULT_SOUND_SPEED = 344.973      # m/s, the reference's simulated system file (REFERENCE_SPEC §1.3)
+DEFAULT_MEMORY_BUDGET = 768 * 2**20  # bytes for one chunk's histogram buffers
+_LANE_LIMIT = 2**32 - 1
+# Bytes per histogram bin while a chunk is rendered: float64 Dr.Jit buffer, its float32
+# rounding and NumPy copy, plus headroom for Dr.Jit's allocator cache.
+_BYTES_PER_BIN = 20
+
+
+@dataclass(frozen=True)
+class PathWindow:
+    """Histogram window: ``n_bins`` bins of ``bin_width`` metres of round-trip path from ``path_start``."""
+
+    path_start: float
+    bin_width: float
+    n_bins: int
+
+    @property
+    def path_end(self) -> float:
+        return self.path_start + self.n_bins * self.bin_width
+
+
+def scene_box(scene) -> SceneBox:
+    """Axis-aligned bounding box of a Mitsuba scene (m)."""
+    bbox = scene.bbox()
+    lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
+        raise InputError("the scene is empty: nothing to render")
+    flat = hi - lo < 1e-6            # e.g. a scene that is only a ground plane
+    return SceneBox(np.where(flat, lo - 5e-7, lo), np.where(flat, hi + 5e-7, hi))
+
+
+def path_window(scene, poses: Poses, *, fs: float = 100e3, oversample: int = 20,
+                sound_speed: float = DEFAULT_SOUND_SPEED, path_range=None,
+                box: SceneBox | None = None) -> PathWindow:
+    """The histogram window :func:`render` uses for these arguments (see the module doc)."""
+    _check_positive("fs", fs)
+    _check_positive("sound_speed", sound_speed)
+    if int(oversample) != oversample or oversample < 1:
+        raise InputError(f"oversample must be an integer >= 1, got {oversample}")
+    width = sound_speed / (fs * int(oversample))
+    if path_range is not None:
+        lo, hi = (float(v) for v in path_range)
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise InputError(f"path_range must be two finite lengths LMIN < LMAX, got {path_range}")
+        return PathWindow(lo, width, max(1, math.ceil((hi - lo) / width - 1e-9)))
+    crop = crop_window(poses, box if box is not None else scene_box(scene), sound_speed, fs)
+    return PathWindow(crop.min_dist, width, crop.num_samples * int(oversample))
+
+
+def choose_chunk_size(paths_per_pose: int, bounces: int, n_bins: int,
+                      memory_budget: int = DEFAULT_MEMORY_BUDGET) -> int:
+    """Poses per chunk: histogram buffers within ``memory_budget`` bytes, lanes < 2³²."""
+    per_pose = _BYTES_PER_BIN * bounces * n_bins
+    by_memory = max(1, memory_budget // per_pose)
+    by_lanes = _LANE_LIMIT // paths_per_pose
+    by_bins = _LANE_LIMIT // (bounces * n_bins)
+    return int(max(1, min(by_memory, by_lanes, by_bins)))
+
+
+def make_integrator(bounces: int = 3, beams: Mapping | None = None):
+    """A ``sonar_transient`` integrator for ``bounces`` bounces and the given beam settings."""
+    from . import runtime
+    mi = runtime.mitsuba()
+    props = {"type": "sonar_transient", "max_bounces": int(bounces), **_beam_settings(beams)}
+    try:
+        return mi.load_dict(props)
+    except (RuntimeError, ValueError) as exc:
+        raise InputError(f"bad integrator settings {props}: {exc}") from None
+
+
+def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
+                fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
+                path_range=None, seed: int = 0, chunk_size: int | None = None,
+                beams: Mapping | None = None, box: SceneBox | None = None,
+                memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = False,
+                window: PathWindow | None = None) -> Iterator[tuple[slice, np.ndarray]]:
+    """Yield ``(pose_slice, hist)`` per chunk, ``hist`` float32 [n, bounces, T] for ``poses[pose_slice]``.
+
+    Arguments as in :func:`render`; ``window`` (from :func:`path_window`) overrides the
+    window arguments. A pose's histogram does not depend on the chunking.
+    """
+    paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
+    if window is None:
+        window = path_window(scene, poses, fs=fs, oversample=oversample,
+                             sound_speed=sound_speed, path_range=path_range, box=box)
+    limit = choose_chunk_size(paths_per_pose, bounces, window.n_bins, memory_budget)
+    n = len(poses)
+    if chunk_size is None:   # equal chunks: Dr.Jit's allocator then reuses the same buffers
+        chunk_size = math.ceil(n / math.ceil(n / limit))
+    elif int(chunk_size) != chunk_size or chunk_size < 1:
+        raise InputError(f"chunk_size must be a positive integer, got {chunk_size}")
+    elif chunk_size * paths_per_pose > _LANE_LIMIT or chunk_size * bounces * window.n_bins > _LANE_LIMIT:
+        raise InputError(f"chunk_size {chunk_size} exceeds 2^32 lanes or bins per launch; "
+                         f"use at most {choose_chunk_size(paths_per_pose, bounces, window.n_bins, 2**62)}")
+    chunk_size = int(chunk_size)
+    integrator = make_integrator(bounces, beams)
+    bar = _progress_bar(n, progress)
+    try:
+        for start in range(0, n, chunk_size):
+            sl = slice(start, min(n, start + chunk_size))
+            hist = integrator.render_transients(
+                scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl], poses.rx_boresight[sl],
+                window.path_start, window.bin_width, window.n_bins, paths_per_pose, seed,
+                pose_offset=start)
+            if bar is not None:
+                bar.update(sl.stop - sl.start)
+            yield sl, hist
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
+           fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
+           path_range=None, seed: int = 0, chunk_size: int | None = None,
+           beams: Mapping | None = None, box: SceneBox | None = None,
+           memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True) -> Transients:
+    """Render energy transients [N, bounces, T] for every pose of ``poses``.
+
+    scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
+    paths_per_pose: Monte-Carlo paths per pose. bounces: histograms for bounces 1…B.
+    fs (Hz), oversample, sound_speed (m/s): bin width sound_speed / (fs · oversample) m.
+    path_range: (LMIN, LMAX) round-trip metres, else the crop window of ``box`` (default:
+    the scene's bounding box) and the poses. seed: 0 ≤ seed < 2³². chunk_size: poses per
+    kernel launch (default from ``memory_budget`` bytes). beams: overrides of
+    :data:`DEFAULT_BEAMS` ('cone' | 'isotropic' | 'piston'; full beamwidths in degrees).
+    Values are the energy received from a unit-intensity TX: ∫ b_R L dω at the RX.
+    """
+    paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
+    if path_range is None and box is None:
+        box = scene_box(scene)
+    window = path_window(scene, poses, fs=fs, oversample=oversample, sound_speed=sound_speed,
+                         path_range=path_range, box=box)
+    out = np.empty((len(poses), bounces, window.n_bins), np.float32)
+    for sl, hist in iter_render(scene, poses, paths_per_pose=paths_per_pose, bounces=bounces,
+                                seed=seed, chunk_size=chunk_size, beams=beams,
+                                memory_budget=memory_budget, progress=progress, window=window):
+        out[sl] = hist
+    meta = {"integrator": "sonar_transient", "mode": "intensity",
+            "paths_per_pose": paths_per_pose, "bounces": bounces, "seed": seed,
+            "beams": _beam_settings(beams),
+            "window": "path_range" if path_range is not None else "crop_window"}
+    if path_range is None:
+        meta["window_box"] = np.stack([box.lo, box.hi]).tolist()   # [[x0,y0,z0],[x1,y1,z1]] m
+    return Transients(out, window.path_start, window.bin_width, float(sound_speed), float(fs),
+                      int(oversample), poses.tx, poses.rx, meta)
+
+
+# ---------------------------------------------------------------------------- helpers
+def _beam_settings(beams: Mapping | None) -> dict:
+    settings = dict(DEFAULT_BEAMS)
+    for key, value in (beams or {}).items():
+        if key not in BEAM_KEYS:
+            raise InputError(f"unknown beam setting {key!r}; use {', '.join(BEAM_KEYS)}")
+        if key.endswith("_beamwidth"):
+            value = float(value)
+        elif key == "shading_normals":
+            value = bool(value)
+        else:
+            value = str(value)
+        settings[key] = value
+    return settings
+
+
+def _check_settings(poses, paths_per_pose, bounces, seed) -> tuple[int, int, int]:
+    if not isinstance(poses, Poses):
+        raise InputError(f"poses must be a sonarsim.geometry.Poses, got {type(poses).__name__}")
+    for name, value, lo, hi in (("paths_per_pose", paths_per_pose, 1, _LANE_LIMIT),
+                                ("bounces", bounces, 1, 64), ("seed", seed, 0, _LANE_LIMIT)):
+        if isinstance(value, bool) or int(value) != value or not lo <= value <= hi:
+            raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value}")
+    if len(poses) > _LANE_LIMIT:
+        raise InputError(f"at most {_LANE_LIMIT} poses per render")
+    return int(paths_per_pose), int(bounces), int(seed)
+
+
+def _check_positive(name: str, value) -> None:
+    if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
+        raise InputError(f"{name} must be a positive number, got {value}")
+
+
+def _progress_bar(total: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, unit="pose", desc="render", dynamic_ncols=True, disable=None)
