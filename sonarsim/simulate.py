@@ -1,0 +1,387 @@
+"""From a scene and poses to a sonar dataset: render -> pulse convolution -> decimation -> noise.
+
+The pipeline follows the reference (REFERENCE_SPEC §6.2), streamed over chunks of poses:
+
+1. **Window.** The crop window of the scene box (REFERENCE_SPEC §1.6 step 5, pulse length
+   min(L, 100) samples): waveform sample k of every ping is at time (start_sample + k)/fs,
+   start_sample = the window's ``min_sample``.
+2. **Render** energy transients over round-trip path length with bins of
+   w = c/(fs·K) (K = ``oversample``). The integrator splats a path of length L between the
+   two bins whose *centres* enclose it, so bin j stands for path length
+   path_start + (j + ½)·w. We set path_start = min_sample·c/fs − w/2: the centre of bin
+   j·K is then exactly the path length c·(start_sample + j)/fs of waveform sample j.
+3. **Bounces.** Sum the histograms of the chosen bounces (default: all rendered).
+4. **Convolve** with the transmitted pulse resampled ×K by Fourier interpolation
+   (``scipy.signal.resample``, as the reference), by FFT over the oversampled histogram,
+   zero-padded so the convolution is linear, not circular. An echo at path length L then
+   starts at time L/c.
+5. **Decimate**: keep every K-th sample (bins 0, K, 2K, ...). No anti-alias filter is
+   needed because the resampled pulse is band-limited below fs/2.
+6. **Noise** (``snr_db`` given): white Gaussian noise with
+   σ² = signal_power(all noiseless waveforms)·10^(−SNR/10) (the SNR definition of
+   :func:`sonarsim.signals.signal_power`, over the whole dataset as the reference does).
+   Ping i's noise is σ·z_i with z_i drawn from its own generator seeded by (seed, i), so
+   it does not depend on the chunking or on where a run was resumed.
+
+**Streaming and resuming.** Chunks go through :class:`sonarsim.dataset.DatasetStreamWriter`
+into ``<out>.partial``; a killed run resumes where it stopped. Without noise that is the
+output file. With noise, σ depends on all pings, so the noiseless dataset is streamed into
+a hidden scratch file ``.<out name>.noiseless`` first, then the noisy dataset is streamed
+from it into ``<out>`` (also resumable) and the scratch file is deleted. Memory is bounded by
+one chunk of histograms plus the N×T noiseless waveforms (155 MB for the 54 000-ping scan).
+
+**Determinism.** The integrator accumulates with float atomics, whose order varies when
+several threads add into one histogram. ``threads=1`` (the default) renders on one Dr.Jit
+thread, which makes results bit-identical for the same inputs and seed, whatever the
+chunking or resume point. More threads are faster but reproducible only to float32
+rounding (about 1e-7 relative).
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Mapping, Sequence
+
+import numpy as np
+import scipy.fft
+
+from . import __version__
+from .dataset import DatasetStreamWriter, TransientsLayout, inspect
+from .errors import FormatError, InputError
+from .geometry import CropWindow, Poses, crop_window
+from .render import (DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, choose_chunk_size,
+                     make_integrator)
+from .scene import SceneSpec
+from .signals import (NAMED_PULSES, REFERENCE_PULSE_SAMPLES, fft_upsample, lfm, load_pulse,
+                      named_pulse, noise_sigma)
+
+NOISE_STREAM = 0x6E6F6973   # spawn key that separates the noise generators from other uses
+CONVOLVE_BLOCK = 128        # pings per FFT block (bounds the temporary arrays)
+PULSE_HELP = ("'lfm-20k' (30->10 kHz, 1 ms), 'lfm-10k', 'lfm-5k' (22.5->17.5 kHz), "
+              "'lfm:F0:F1:DUR[:TUKEY]' (Hz, Hz, s, window ratio; default 0.1), "
+              "or a measured pulse FILE.npy sampled at fs")
+
+
+# ----------------------------------------------------------------------------- pulses
+
+@dataclass(frozen=True)
+class Pulse:
+    """A transmitted pulse ``samples`` [L] at ``fs`` (Hz) and the spec it came from."""
+    samples: np.ndarray
+    fs: float
+    spec: str
+
+
+def make_pulse(spec: str | os.PathLike, fs: float, max_samples: int | None = None) -> Pulse:
+    """The pulse for a ``--pulse`` spec (see ``PULSE_HELP``), sampled at ``fs`` Hz.
+
+    ``max_samples`` truncates a measured pulse (the reference keeps the first 100 samples
+    of the measured AirSAS pulses).
+    """
+    text = os.fspath(spec).strip()
+    low = text.lower()
+    if low in NAMED_PULSES:
+        return Pulse(named_pulse(low, fs), float(fs), low)
+    if low.startswith("lfm:"):
+        parts = text.split(":")[1:]
+        if len(parts) not in (3, 4):
+            raise InputError(f"pulse '{text}': expected lfm:F0:F1:DUR or lfm:F0:F1:DUR:TUKEY")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise InputError(f"pulse '{text}': F0, F1, DUR (and TUKEY) must be numbers") from None
+        f0, f1, dur = values[:3]
+        ratio = values[3] if len(values) == 4 else 0.1
+        return Pulse(lfm(f0, f1, dur, fs, window_ratio=ratio), float(fs), text)
+    if low.endswith(".npy"):
+        return Pulse(load_pulse(text, max_samples), float(fs), text)
+    raise InputError(f"unknown pulse '{text}': expected {PULSE_HELP}")
+
+
+# ----------------------------------------------------------------------------- signal model
+
+def simulation_window(poses: Poses, spec: SceneSpec, pulse: Pulse, sound_speed: float,
+                      oversample: int) -> tuple[CropWindow, PathWindow]:
+    """The crop window (samples at fs) and the aligned histogram window (see module doc)."""
+    crop = crop_window(poses, spec.box, sound_speed, pulse.fs,
+                       pulse_samples=min(len(pulse.samples), REFERENCE_PULSE_SAMPLES))
+    width = sound_speed / (pulse.fs * oversample)
+    return crop, PathWindow(crop.min_dist - width / 2, width, crop.num_samples * oversample)
+
+
+def oversampled_pulse(pulse: np.ndarray, oversample: int) -> np.ndarray:
+    """The pulse at fs·oversample by Fourier interpolation [L·oversample] (REFERENCE_SPEC §6.2)."""
+    return fft_upsample(np.asarray(pulse, float), oversample)
+
+
+def transients_to_waveforms(hist: np.ndarray, pulse_os: np.ndarray, oversample: int,
+                            n_samples: int, bounce_index: Sequence[int] | None = None
+                            ) -> np.ndarray:
+    """Waveforms float32 [n, n_samples] from histograms [n, B, T_bins] (T_bins >= n_samples·K).
+
+    Sums the bounces ``bounce_index`` (0-based; default all), convolves (linearly, by FFT)
+    with ``pulse_os`` (the pulse at fs·K, sample 0 at t = 0) and keeps bins 0, K, 2K, ...
+    """
+    hist = np.asarray(hist)
+    if hist.ndim != 3:
+        raise InputError(f"transients must be [n, B, T], got shape {hist.shape}")
+    k = int(oversample)
+    n_bins = hist.shape[2]
+    if n_samples * k > n_bins:
+        raise InputError(f"{n_samples} samples x oversample {k} exceed the {n_bins} bins")
+    index = list(range(hist.shape[1])) if bounce_index is None else list(bounce_index)
+    n_fft = scipy.fft.next_fast_len(n_bins + len(pulse_os) - 1, real=True)
+    pulse_spectrum = scipy.fft.rfft(pulse_os, n_fft)
+    out = np.empty((hist.shape[0], n_samples), np.float32)
+    for a in range(0, hist.shape[0], CONVOLVE_BLOCK):
+        block = hist[a:a + CONVOLVE_BLOCK][:, index].sum(axis=1, dtype=np.float64)
+        full = scipy.fft.irfft(scipy.fft.rfft(block, n_fft, axis=-1) * pulse_spectrum, n_fft,
+                               axis=-1)
+        out[a:a + CONVOLVE_BLOCK] = full[:, :n_samples * k:k]
+    return out
+
+
+def ping_noise(seed: int, start: int, stop: int, n_samples: int) -> np.ndarray:
+    """Unit-variance Gaussian noise float64 [stop − start, n_samples] for pings start..stop−1.
+
+    Ping i's noise comes from a generator seeded by (seed, i) only.
+    """
+    out = np.empty((stop - start, n_samples))
+    for row, ping in enumerate(range(start, stop)):
+        seq = np.random.SeedSequence(int(seed), spawn_key=(NOISE_STREAM, ping))
+        out[row] = np.random.default_rng(seq).standard_normal(n_samples)
+    return out
+
+
+@contextlib.contextmanager
+def dr_threads(threads: int | None) -> Iterator[None]:
+    """Run the enclosed Dr.Jit work on ``threads`` threads (None: leave as is), then restore."""
+    if threads is None:
+        yield
+        return
+    import drjit as dr
+    before = dr.thread_count()
+    dr.set_thread_count(int(threads))
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
+
+
+# ----------------------------------------------------------------------------- pipeline
+
+@dataclass
+class SimulationSettings:
+    """Everything that determines a simulated dataset besides the scene and the poses."""
+    pulse: Pulse
+    snr_db: float | None = None
+    paths_per_pose: int = 10_000
+    bounces: int = 3
+    bounce_set: tuple[int, ...] | None = None     # 1-based; None = all rendered
+    oversample: int = 20
+    sound_speed: float = DEFAULT_SOUND_SPEED
+    seed: int = 0
+    beams: Mapping | None = None
+    keep_transients: bool = False
+    chunk_size: int | None = None
+    threads: int | None = 1
+    extra_meta: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        for name, lo in (("paths_per_pose", 1), ("bounces", 1), ("oversample", 1), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < lo:
+                raise InputError(f"{name} must be an integer >= {lo}, got {value}")
+        if self.seed >= 2**32:
+            raise InputError(f"seed must be < 2^32, got {self.seed}")
+        if self.bounce_set is not None:
+            if not self.bounce_set or any(b < 1 or b > self.bounces for b in self.bounce_set):
+                raise InputError(f"bounce set {list(self.bounce_set)} must be within "
+                                 f"1..{self.bounces} (the rendered bounces)")
+        if self.snr_db is not None and not math.isfinite(self.snr_db):
+            raise InputError(f"snr_db must be finite, got {self.snr_db}")
+        if not (math.isfinite(self.sound_speed) and self.sound_speed > 0):
+            raise InputError(f"sound_speed must be positive, got {self.sound_speed}")
+        if self.threads is not None and (int(self.threads) != self.threads or self.threads < 1):
+            raise InputError(f"threads must be a positive integer, got {self.threads}")
+
+    @property
+    def bounce_index(self) -> list[int]:
+        chosen = self.bounce_set or tuple(range(1, self.bounces + 1))
+        return sorted({b - 1 for b in chosen})
+
+
+def scratch_path(out: Path) -> Path:
+    """The hidden noiseless intermediate dataset of a noisy simulation to ``out``."""
+    return out.with_name(f".{out.name}.noiseless")
+
+
+def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: SimulationSettings,
+             *, resume: bool = True, progress: bool = False,
+             on_chunk: Callable[[int, int], None] | None = None) -> Path:
+    """Simulate a :class:`sonarsim.dataset.SonarDataset` of ``spec`` seen from ``poses`` into ``out``.
+
+    ``resume``: continue an interrupted run with the same settings (else start over).
+    ``on_chunk(stop, n)`` is called after each rendered chunk is stored (for progress
+    reports and tests). Returns the output path.
+    """
+    settings.validate()
+    out = Path(out)
+    if not out.parent.is_dir():
+        raise InputError(f"{out}: output directory does not exist")
+    pulse = settings.pulse
+    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
+    gt = spec.gt_mesh()
+    common = dict(
+        n_samples=crop.num_samples, tx=poses.tx, rx=poses.rx, boresight=poses.tx_boresight,
+        rx_boresight=None if np.array_equal(poses.tx_boresight, poses.rx_boresight)
+        else poses.rx_boresight,
+        pulse=pulse.samples, fs=pulse.fs, sound_speed=float(settings.sound_speed),
+        source="simulated", start_sample=crop.min_sample,
+        gt_vertices=np.asarray(gt.vertices, float) if len(gt.faces) else None,
+        gt_faces=np.asarray(gt.faces, np.int64) if len(gt.faces) else None,
+        seed=int(settings.seed))
+    meta = _meta(spec, settings, crop, window)
+    meta["run_id"] = _run_id(common, meta)
+    layout = None
+    if settings.keep_transients:
+        layout = TransientsLayout(settings.bounces, window.n_bins, window.path_start,
+                                  window.bin_width, float(settings.sound_speed), pulse.fs,
+                                  int(settings.oversample), {"paths_per_pose": settings.paths_per_pose,
+                                                             "seed": int(settings.seed)})
+    noisy = settings.snr_db is not None
+    first = scratch_path(out) if noisy else out
+    if not resume:
+        for path in (out, first):
+            with contextlib.suppress(FileNotFoundError):
+                Path(os.fspath(path) + ".partial").unlink()
+        with contextlib.suppress(FileNotFoundError):
+            scratch_path(out).unlink()
+
+    if not (noisy and _scratch_matches(first, meta)):
+        writer = _open_writer(first, common, meta, layout, None)
+        try:
+            _render_into(writer, spec, poses, settings, crop, window, progress, on_chunk)
+            writer.finish()
+        finally:
+            writer.close()
+        if not noisy:
+            return out
+
+    # Noise pass: noiseless scratch -> noisy output.
+    with inspect(first) as (_, fields):
+        clean = np.asarray(fields["waveforms"][()], np.float32)
+        sigma = noise_sigma(clean, float(settings.snr_db))
+        writer = _open_writer(out, common, meta | {"noise_sigma": sigma},
+                              layout, float(settings.snr_db))
+        try:
+            chunk = max(1, settings.chunk_size or 1024)
+            for start, stop in writer.missing_ranges(chunk):
+                noise = ping_noise(settings.seed, start, stop, crop.num_samples)
+                wf = (clean[start:stop] + sigma * noise).astype(np.float32)
+                tr = None
+                if layout is not None:
+                    tr = fields["transients"]["transients"][start:stop]
+                writer.write(start, wf, tr)
+            writer.finish()
+        finally:
+            writer.close()
+    scratch_path(out).unlink()
+    return out
+
+
+def _meta(spec: SceneSpec, s: SimulationSettings, crop: CropWindow, window: PathWindow) -> dict:
+    return {"scene": spec.name, "scene_source": spec.source,
+            "box": [spec.box.lo.tolist(), spec.box.hi.tolist()],
+            "pulse_spec": s.pulse.spec, "paths_per_pose": int(s.paths_per_pose),
+            "bounces": int(s.bounces), "bounce_set": [b + 1 for b in s.bounce_index],
+            "oversample": int(s.oversample), "beams": {**DEFAULT_BEAMS, **dict(s.beams or {})},
+            "path_start": window.path_start, "path_bin_width": window.bin_width,
+            "crop_min_dist": crop.min_dist, "crop_max_dist": crop.max_dist,
+            "noise": "white Gaussian, sigma^2 = signal_power(noiseless) * 10^(-snr_db/10); "
+                     "ping i seeded by (seed, i)",
+            "generator": f"sonarsim {__version__} simulate", **s.extra_meta}
+
+
+def _open_writer(path: Path, common: dict, meta: dict, layout, snr_db) -> DatasetStreamWriter:
+    try:
+        return DatasetStreamWriter(path, **common, meta=meta, snr_db=snr_db,
+                                   transients=layout, resume=True)
+    except FormatError as exc:
+        raise FormatError(f"{exc} (or pass --restart)") from None
+
+
+def _scratch_matches(path: Path, meta: dict) -> bool:
+    """Whether a finished noiseless scratch file of this very run exists (else it is stale)."""
+    if not path.is_file():
+        return False
+    try:
+        with inspect(path) as (_, fields):
+            same = _digest(fields["meta"]) == _digest(meta)
+    except FormatError:
+        same = False
+    if not same:
+        path.unlink()
+    return same
+
+
+def _run_id(common: dict, meta: dict) -> str:
+    """A digest of everything that determines the noiseless data (detects stale scratch files)."""
+    digest = hashlib.sha256(_digest(meta).encode())
+    for key in sorted(common):
+        value = common[key]
+        digest.update(key.encode())
+        if isinstance(value, np.ndarray):
+            digest.update(np.ascontiguousarray(value).tobytes())
+        else:
+            digest.update(repr(value).encode())
+    return digest.hexdigest()[:24]
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _render_into(writer: DatasetStreamWriter, spec: SceneSpec, poses: Poses,
+                 s: SimulationSettings, crop: CropWindow, window: PathWindow, progress: bool,
+                 on_chunk: Callable[[int, int], None] | None) -> None:
+    """Render every pose the writer still lacks, chunk by chunk, and store its waveforms."""
+    chunk = s.chunk_size or choose_chunk_size(s.paths_per_pose, s.bounces, window.n_bins)
+    if chunk * s.paths_per_pose >= 2**32 or chunk * s.bounces * window.n_bins >= 2**32:
+        raise InputError(f"chunk size {chunk} needs 2^32 or more lanes or bins in one launch; "
+                         f"use at most {choose_chunk_size(s.paths_per_pose, s.bounces, window.n_bins, 2**62)}")
+    ranges = writer.missing_ranges(int(chunk))
+    if not ranges:
+        return
+    scene = spec.to_mitsuba()
+    integrator = make_integrator(s.bounces, s.beams)
+    pulse_os = oversampled_pulse(s.pulse.samples, s.oversample)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(poses), initial=writer.n_done, unit="ping", desc="simulate",
+                   dynamic_ncols=True, disable=None)
+    try:
+        for start, stop in ranges:
+            sl = slice(start, stop)
+            with dr_threads(s.threads):
+                hist = integrator.render_transients(
+                    scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl],
+                    poses.rx_boresight[sl], window.path_start, window.bin_width, window.n_bins,
+                    s.paths_per_pose, s.seed, pose_offset=start)
+            wf = transients_to_waveforms(hist, pulse_os, s.oversample, crop.num_samples,
+                                         s.bounce_index)
+            writer.write(start, wf, hist if writer.layout is not None else None)
+            del hist
+            if bar is not None:
+                bar.update(stop - start)
+            if on_chunk is not None:
+                on_chunk(stop, len(poses))
+    finally:
+        if bar is not None:
+            bar.close()
