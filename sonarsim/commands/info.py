@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 
 from .. import dataset as fmt
+from ..dataset.volume import voxel_spacing
 
 HELP = "Print a summary of a sonarsim HDF5 file (transients, sonar dataset or volume)."
 
@@ -158,9 +159,7 @@ def _volume(f: dict) -> list[tuple[str, str]]:
     vol: h5py.Dataset = f["volume"]
     bounds = f["bounds"]
     shape = vol.shape
-    n = np.asarray(shape, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        size = np.where(n > 1, (bounds[:, 1] - bounds[:, 0]) / (n - 1), np.nan)
+    size = voxel_spacing(bounds, shape)
     peak, argmax, offset = 0.0, None, 0
     for slab in _slabs(vol):
         mag = np.abs(slab)

@@ -1,0 +1,265 @@
+"""Resumable, chunk-by-chunk writing of a sonar dataset file (``sonarsim simulate``)."""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import FormatError, InputError
+from .attributes import json_default
+from .checks import as_array, as_int
+from .h5io import PARTIAL_SUFFIX, PathLike, commit
+from .sonar_dataset import SonarDataset
+from .transients import Transients
+
+@dataclass(frozen=True)
+class TransientsLayout:
+    """Layout of the transients a :class:`DatasetStreamWriter` stores with the waveforms
+    (same meaning as the :class:`Transients` fields)."""
+
+    n_bounces: int
+    n_bins: int
+    path_start: float
+    path_bin_width: float
+    sound_speed: float
+    fs: float
+    oversample: int
+    meta: dict = field(default_factory=dict)
+
+
+def _dataset_header(**fields) -> SonarDataset:
+    """A validated SonarDataset without waveforms (only its header fields are set)."""
+    header = object.__new__(SonarDataset)
+    header.__dict__.update(fields)
+    header._validate_header({})
+    return header
+
+
+def _transients_header(layout: TransientsLayout, dataset: SonarDataset) -> Transients:
+    """A validated Transients without data, at the poses of ``dataset``."""
+    t = object.__new__(Transients)
+    t.__dict__.update(path_start=layout.path_start, path_bin_width=layout.path_bin_width,
+                      sound_speed=layout.sound_speed, fs=layout.fs,
+                      oversample=layout.oversample, tx=dataset.tx, rx=dataset.rx,
+                      meta=dict(layout.meta))
+    t._validate_scalars()
+    as_int("n_bounces", layout.n_bounces, minimum=1)
+    as_int("n_bins", layout.n_bins, minimum=1)
+    return t
+
+
+class DatasetStreamWriter:
+    """Write a :class:`SonarDataset` file ping chunk by ping chunk, resumably.
+
+    Data go to ``<path>.partial`` (root attribute ``complete = False``, which every reader
+    refuses).  A boolean dataset ``stream/done`` [N] records the pings written so far; it
+    is set only after their data are flushed.  Reopening with ``resume=True`` continues
+    where an interrupted run stopped, provided every other field (geometry, pulse, fs, ...)
+    is the same as before (else FormatError naming the field).  :meth:`finish` checks that
+    every ping is written, removes the bookkeeping, sets ``complete = True`` and renames
+    the file atomically to ``path``.  The result reads back equal to a one-shot
+    :meth:`SonarDataset.write` of the same content.
+
+    Keyword arguments are the :class:`SonarDataset` fields except ``waveforms`` (replaced
+    by ``n_samples``) and ``transients`` (replaced by an optional :class:`TransientsLayout`).
+
+    Usage::
+
+        with DatasetStreamWriter("D.h5", n_samples=T, tx=..., rx=..., ...) as w:
+            for start, stop in w.missing_ranges(chunk=256):
+                w.write(start, waveforms_chunk, transients_chunk)
+            w.finish()
+    """
+
+    def __init__(self, path: PathLike, *, n_samples: int, tx, rx, boresight, pulse, fs,
+                 sound_speed, source: str, start_sample: int = 0, temperatures=None,
+                 gt_vertices=None, gt_faces=None, snr_db=None, seed=None, meta=None,
+                 rx_boresight=None, transients: TransientsLayout | None = None,
+                 resume: bool = True):
+        self.path = Path(path)
+        self.partial_path = Path(os.fspath(path) + PARTIAL_SUFFIX)
+        self.n_samples = as_int("n_samples", n_samples, minimum=1)
+        self.header = _dataset_header(
+            tx=tx, rx=rx, boresight=boresight, pulse=pulse, fs=fs, sound_speed=sound_speed,
+            source=source, start_sample=start_sample, temperatures=temperatures,
+            gt_vertices=gt_vertices, gt_faces=gt_faces, snr_db=snr_db, seed=seed,
+            transients=None, meta=dict(meta or {}), rx_boresight=rx_boresight)
+        self.n_pings = len(self.header.tx)
+        self.layout = transients
+        self._t_header = (None if transients is None
+                          else _transients_header(transients, self.header))
+        self.resumed = False
+        self._file: h5py.File | None = None
+        if resume and self.partial_path.exists():
+            self._file = self._reopen()
+        if self._file is None:
+            self._file = self._create()
+
+    # ---- opening
+    def _fingerprints(self) -> dict[str, str]:
+        """A digest per header field, to detect a partial file written with other settings."""
+        h = self.header
+        items = {name: getattr(h, name) for name in (
+            "tx", "rx", "boresight", "rx_boresight", "pulse", "fs", "sound_speed", "source",
+            "start_sample", "temperatures", "gt_vertices", "gt_faces", "snr_db", "seed", "meta")}
+        items["n_samples"] = self.n_samples
+        if self.layout is not None:
+            items["transients"] = {k: getattr(self.layout, k) for k in (
+                "n_bounces", "n_bins", "path_start", "path_bin_width", "sound_speed", "fs",
+                "oversample", "meta")}
+        else:
+            items["transients"] = None
+        out = {}
+        for key, value in items.items():
+            digest = hashlib.sha256()
+            if isinstance(value, np.ndarray):
+                digest.update(str(value.dtype).encode() + str(value.shape).encode())
+                digest.update(value.tobytes())
+            else:
+                digest.update(json.dumps(value, sort_keys=True, default=json_default).encode())
+            out[key] = digest.hexdigest()[:16]
+        return out
+
+    def _create(self) -> h5py.File:
+        with contextlib.suppress(FileNotFoundError):
+            self.partial_path.unlink()
+        f = h5py.File(self.partial_path, "w")
+        try:
+            self.header._write_header_fields(f)
+            f.attrs["complete"] = False
+            f.create_dataset("waveforms", shape=(self.n_pings, self.n_samples),
+                             dtype=np.float32, fillvalue=0)
+            if self._t_header is not None:
+                g = f.create_group("transients")
+                self._t_header._write_group(g, data=False)
+                g.create_dataset("transients", dtype=np.float32, fillvalue=0, shape=(
+                    self.n_pings, self.layout.n_bounces, self.layout.n_bins))
+            f.create_dataset("stream/done", shape=(self.n_pings,), dtype=bool, fillvalue=False)
+            f["stream"].attrs["fingerprints"] = json.dumps(self._fingerprints())
+            f.flush()
+        except BaseException:
+            f.close()
+            raise
+        return f
+
+    def _reopen(self) -> h5py.File | None:
+        """Open the existing partial file for resuming; None if it is unusable (corrupt
+        after a hard kill, or not a partial file), in which case it is started again."""
+        label = os.fspath(self.partial_path)
+        try:
+            f = h5py.File(self.partial_path, "r+")
+        except OSError:
+            return None
+        try:
+            stored = json.loads(f["stream"].attrs["fingerprints"])
+            done = f["stream/done"]
+            done_ok = done.shape == (self.n_pings,)
+        except (KeyError, OSError, RuntimeError, TypeError, ValueError):
+            f.close()
+            return None
+        for key, digest in self._fingerprints().items():
+            if stored.get(key) != digest:
+                f.close()
+                raise FormatError(f"{label}: partial file of an earlier run has a different "
+                                  f"'{key}'; delete it or run without resuming")
+        if not done_ok:
+            f.close()
+            return None
+        self.resumed = True
+        return f
+
+    # ---- progress
+    @property
+    def done(self) -> np.ndarray:
+        """bool [N]: which pings are written."""
+        return np.asarray(self._require_open()["stream/done"][()], dtype=bool)
+
+    @property
+    def n_done(self) -> int:
+        return int(self.done.sum())
+
+    def missing_ranges(self, chunk: int) -> list[tuple[int, int]]:
+        """(start, stop) ping ranges, each at most ``chunk`` long, covering every ping
+        not yet written (in order)."""
+        chunk = as_int("chunk", chunk, minimum=1)
+        todo = ~self.done
+        out = []
+        i = 0
+        while i < self.n_pings:
+            if not todo[i]:
+                i += 1
+                continue
+            j = i
+            while j < self.n_pings and todo[j] and j - i < chunk:
+                j += 1
+            out.append((i, j))
+            i = j
+        return out
+
+    # ---- writing
+    def _require_open(self) -> h5py.File:
+        if self._file is None:
+            raise InputError(f"{self.partial_path}: stream writer is closed")
+        return self._file
+
+    def write(self, start: int, waveforms, transients=None) -> None:
+        """Store pings ``start .. start + n - 1``: waveforms [n, T] (float32) and, if the
+        writer has a transients layout, transients [n, B, T_bins]."""
+        f = self._require_open()
+        start = as_int("start", start, minimum=0)
+        dims: dict = {"T": (self.n_samples, "n_samples")}
+        wf = as_array("waveforms", waveforms, ("n", "T"), np.float32, dims)
+        stop = start + wf.shape[0]
+        if stop > self.n_pings:
+            raise InputError(f"pings {start}..{stop - 1} exceed the dataset's {self.n_pings}")
+        if (self.layout is None) != (transients is None):
+            raise InputError("transients must be given exactly when the writer has a "
+                             "transients layout")
+        if transients is not None:
+            dims.update(B=(self.layout.n_bounces, "layout"), K=(self.layout.n_bins, "layout"))
+            tr = as_array("transients", transients, ("n", "B", "K"), np.float32, dims)
+            f["transients/transients"][start:stop] = tr
+        f["waveforms"][start:stop] = wf
+        f.flush()  # data on disk before the pings are marked done
+        f["stream/done"][start:stop] = True
+        f.flush()
+
+    def finish(self) -> Path:
+        """Complete the file and rename it to the final path atomically; returns it."""
+        f = self._require_open()
+        done = self.done
+        if not done.all():
+            missing = np.flatnonzero(~done)
+            raise InputError(f"{self.partial_path}: {missing.size} pings not written yet "
+                             f"(first: {int(missing[0])})")
+        del f["stream"]
+        f.attrs["complete"] = True
+        f.flush()
+        f.close()
+        self._file = None
+        commit(self.partial_path, self.path)
+        return self.path
+
+    def close(self) -> None:
+        """Close without finishing; the partial file stays for a later resume."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def discard(self) -> None:
+        """Close and delete the partial file."""
+        self.close()
+        with contextlib.suppress(FileNotFoundError):
+            self.partial_path.unlink()
+
+    def __enter__(self) -> "DatasetStreamWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
