@@ -36,7 +36,7 @@ def dataset(n_pings: int, n_samples: int = 608, start_sample: int = 217, seed: i
     return SonarDataset(waveforms=w, tx=tx, rx=rx, boresight=bore,
                         pulse=signals.named_pulse("lfm-20k", 100e3), fs=100e3,
                         sound_speed=345.0, source="benchmark", start_sample=start_sample,
-                        meta={"box_lo": list(box.lo), "box_hi": list(box.hi)})
+                        meta={"box": np.stack([box.lo, box.hi], axis=1).tolist()})
 
 
 def timed(fn):

@@ -9,7 +9,7 @@ Also times the signal stage (bounce sum, pulse convolution, decimation) against 
 straightforward NumPy implementation (np.convolve per ping, then decimate).
 
 Usage: .venv/bin/python benchmarks/bench_simulate.py [--poses 2000] [--paths 10000]
-       [--threads 1] [--mesh ../shared/data/meshes/bunny.obj] [--keep]
+       [--threads N] [--mesh ../shared/data/meshes/bunny.obj] [--keep]
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def main() -> int:
     parser.add_argument("--poses", type=int, default=2000, help="poses to run (<= 54000)")
     parser.add_argument("--paths", type=int, default=10_000, help="paths per pose")
     parser.add_argument("--bounces", type=int, default=3)
-    parser.add_argument("--threads", type=int, default=1, help="Dr.Jit threads (1: deterministic)")
+    parser.add_argument("--threads", type=int, default=None, help="Dr.Jit threads (default: all)")
     parser.add_argument("--snr-db", type=float, default=20.0)
     parser.add_argument("--mesh", type=Path, default=ROOT.parent / "shared/data/meshes/bunny.obj")
     parser.add_argument("--keep", action="store_true", help="keep the output file")
@@ -101,7 +101,7 @@ def main() -> int:
         ("poses run", f"{n} (every {step}th of the 54 000-pose scan, crop window of the subset)"),
         ("paths/pose, bounces", f"{args.paths}, {args.bounces}"),
         ("window", f"{crop.num_samples} samples, {window.n_bins} bins"),
-        ("Dr.Jit threads", f"{args.threads}"),
+        ("Dr.Jit threads", f"{args.threads or 'all'}"),
         ("wall time", f"{wall:.1f} s  ({n * args.paths / wall / 1e6:.2f} M paths/s, "
                       f"{n / wall:.0f} poses/s)"),
         ("projected full scan", f"{wall * scale / 60:.1f} min"),

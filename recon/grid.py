@@ -129,30 +129,24 @@ class Grid:
 
 
 def scene_box_of(dataset):
-    """The scene box a dataset declares, else ``sonarsim.geometry.SIM_BOX``.
+    """The scene box a dataset declares in ``meta['box']``, else ``sonarsim.geometry.SIM_BOX``.
 
-    Looks for ``meta['box_lo']``/``meta['box_hi']`` (as the AirSAS importer writes them),
-    then ``meta['scene_box']`` or ``meta['box']`` ([2, 3] lo/hi rows, as ``simulate`` writes
-    it, or [3, 2] bounds), then a ``scene_box`` attribute.
+    ``meta['box']`` = [[x0, x1], [y0, y1], [z0, z1]] metres (the layout of
+    :class:`sonarsim.dataset.Volume` bounds), as ``simulate``, ``import-airsas`` and
+    ``import-pik`` write it.
     """
     from sonarsim import geometry
     meta = getattr(dataset, "meta", None) or {}
-    if "box_lo" in meta and "box_hi" in meta:
-        lo = np.asarray(meta["box_lo"], dtype=np.float64)
-        hi = np.asarray(meta["box_hi"], dtype=np.float64)
-        if lo.shape != (3,) or hi.shape != (3,):
-            raise InputError("dataset meta 'box_lo'/'box_hi': expected 3 numbers each")
-        return geometry.SceneBox(lo, hi)
-    box = meta.get("scene_box", meta.get("box", getattr(dataset, "scene_box", None)))
-    if box is None:
+    if "box" not in meta:
+        if "box_lo" in meta or "box_hi" in meta:
+            raise InputError("dataset meta 'box_lo'/'box_hi' is not read: store the scene box as "
+                             "meta 'box' = [[x0, x1], [y0, y1], [z0, z1]] (m)")
         return geometry.SIM_BOX
-    if hasattr(box, "lo") and hasattr(box, "hi"):
-        return box
-    a = np.asarray(box, dtype=np.float64)
-    if a.shape == (6,):
-        a = a.reshape(3, 2)
-    if a.shape == (3, 2):
-        return geometry.SceneBox(a[:, 0], a[:, 1])
-    if a.shape == (2, 3):
-        return geometry.SceneBox(a[0], a[1])
-    raise InputError(f"dataset meta 'scene_box': expected [2, 3] or [3, 2], got shape {a.shape}")
+    try:
+        a = np.asarray(meta["box"], dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.empty(0)
+    if a.shape != (3, 2) or not np.all(np.isfinite(a)) or not np.all(a[:, 1] > a[:, 0]):
+        raise InputError(f"dataset meta 'box': expected [[x0, x1], [y0, y1], [z0, z1]] (m) with "
+                         f"x0 < x1 etc., got {meta['box']!r}")
+    return geometry.SceneBox(a[:, 0], a[:, 1])

@@ -61,7 +61,7 @@ def point_dataset(points, amplitudes=1.0, n_pings: int = 90, *, heights=(0.1,), 
 
     Defaults: the reference's 20 kHz LFM, a cropped window that covers the scene
     (``start_sample`` > 0, so the time origin is exercised). ``scene_box`` (a SceneBox or
-    [3, 2] bounds) is stored as meta ``box_lo``/``box_hi``, as the importers do.
+    [3, 2] bounds) is stored as meta ``box`` = [[x0, x1], [y0, y1], [z0, z1]], as the importers do.
     """
     from sonarsim import signals
     from sonarsim.dataset import SonarDataset
@@ -80,7 +80,7 @@ def point_dataset(points, amplitudes=1.0, n_pings: int = 90, *, heights=(0.1,), 
     if scene_box is not None:
         lo, hi = (np.asarray(scene_box.lo), np.asarray(scene_box.hi)) if hasattr(scene_box, "lo") \
             else np.asarray(scene_box, dtype=np.float64).T
-        meta["box_lo"], meta["box_hi"] = np.asarray(lo, float).tolist(), np.asarray(hi, float).tolist()
+        meta["box"] = np.stack([np.asarray(lo, float), np.asarray(hi, float)], axis=1).tolist()
     return SonarDataset(waveforms=w, tx=tx, rx=rx, boresight=bore,
                         pulse=np.asarray(pulse, dtype=np.float64), fs=float(fs),
                         sound_speed=float(sound_speed), source="synthetic:point",

@@ -100,18 +100,25 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
                 path_range=None, seed: int = 0, chunk_size: int | None = None,
                 beams: Mapping | None = None, box: SceneBox | None = None,
                 memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = False,
-                window: PathWindow | None = None) -> Iterator[tuple[slice, np.ndarray]]:
+                window: PathWindow | None = None, start: int = 0, stop: int | None = None
+                ) -> Iterator[tuple[slice, np.ndarray]]:
     """Yield ``(pose_slice, hist)`` per chunk, ``hist`` float32 [n, bounces, T] for ``poses[pose_slice]``.
 
     Arguments as in :func:`render`; ``window`` (from :func:`path_window`) overrides the
-    window arguments. A pose's histogram does not depend on the chunking.
+    window arguments. ``start``, ``stop``: render only poses start..stop−1 (default all);
+    slices are global indices into ``poses``. A pose's histogram depends only on its
+    global index, the seed and the settings, not on the chunking or on ``start``; the
+    default window is still computed over all of ``poses``.
     """
     paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
+    first, end = _check_range(start, stop, len(poses))
     if window is None:
         window = path_window(scene, poses, fs=fs, oversample=oversample,
                              sound_speed=sound_speed, path_range=path_range, box=box)
     limit = choose_chunk_size(paths_per_pose, bounces, window.n_bins, memory_budget)
-    n = len(poses)
+    n = end - first
+    if n == 0:
+        return
     if chunk_size is None:   # equal chunks: Dr.Jit's allocator then reuses the same buffers
         chunk_size = math.ceil(n / math.ceil(n / limit))
     elif int(chunk_size) != chunk_size or chunk_size < 1:
@@ -123,12 +130,12 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
     integrator = make_integrator(bounces, beams)
     bar = _progress_bar(n, progress)
     try:
-        for start in range(0, n, chunk_size):
-            sl = slice(start, min(n, start + chunk_size))
+        for a in range(first, end, chunk_size):
+            sl = slice(a, min(end, a + chunk_size))
             hist = integrator.render_transients(
                 scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl], poses.rx_boresight[sl],
                 window.path_start, window.bin_width, window.n_bins, paths_per_pose, seed,
-                pose_offset=start)
+                pose_offset=a)
             if bar is not None:
                 bar.update(sl.stop - sl.start)
             yield sl, hist
@@ -168,7 +175,7 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
             "beams": _beam_settings(beams),
             "window": "path_range" if path_range is not None else "crop_window"}
     if path_range is None:
-        meta["window_box"] = np.stack([box.lo, box.hi]).tolist()   # [[x0,y0,z0],[x1,y1,z1]] m
+        meta["window_box"] = np.stack([box.lo, box.hi], axis=1).tolist()   # [[x0,x1],[y0,y1],[z0,z1]] m
     return Transients(out, window.path_start, window.bin_width, float(sound_speed), float(fs),
                       int(oversample), poses.tx, poses.rx, meta)
 
@@ -199,6 +206,17 @@ def _check_settings(poses, paths_per_pose, bounces, seed) -> tuple[int, int, int
     if len(poses) > _LANE_LIMIT:
         raise InputError(f"at most {_LANE_LIMIT} poses per render")
     return int(paths_per_pose), int(bounces), int(seed)
+
+
+def _check_range(start, stop, n: int) -> tuple[int, int]:
+    """(start, stop) as ints with 0 <= start <= stop <= n (stop None: n)."""
+    stop = n if stop is None else stop
+    for name, value in (("start", start), ("stop", stop)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise InputError(f"{name} must be an integer pose index, got {value!r}")
+    if not 0 <= start <= stop <= n:
+        raise InputError(f"pose range must satisfy 0 <= start <= stop <= {n}, got {start}..{stop}")
+    return int(start), int(stop)
 
 
 def _check_positive(name: str, value) -> None:

@@ -30,11 +30,13 @@ a hidden scratch file ``.<out name>.noiseless`` first, then the noisy dataset is
 from it into ``<out>`` (also resumable) and the scratch file is deleted. Memory is bounded by
 one chunk of histograms plus the N×T noiseless waveforms (155 MB for the 54 000-ping scan).
 
-**Determinism.** The integrator accumulates with float atomics, whose order varies when
-several threads add into one histogram. ``threads=1`` (the default) renders on one Dr.Jit
-thread, which makes results bit-identical for the same inputs and seed, whatever the
-chunking or resume point. More threads are faster but reproducible only to float32
-rounding (about 1e-7 relative).
+**Determinism.** A pose's random numbers depend on (seed, global pose index, path) only.
+Threads add into the histograms in a varying order, but the integrator sums in float64 and
+rounds to float32 once, so the same inputs and seed give the same bytes whatever the thread
+count, chunking or resume point (measured; docs/simulation.md "Reproducibility"), except
+that a float64 sum lying within ~1e-16 of a float32 rounding boundary could in principle
+round to the neighbouring float32 (1 ulp). ``threads`` (default None: Dr.Jit's setting, all
+cores) only changes the speed.
 """
 from __future__ import annotations
 
@@ -54,8 +56,7 @@ from . import __version__
 from .dataset import DatasetStreamWriter, TransientsLayout, inspect
 from .errors import FormatError, InputError
 from .geometry import CropWindow, Poses, crop_window
-from .render import (DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, choose_chunk_size,
-                     make_integrator)
+from .render import DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, iter_render
 from .scene import SceneSpec
 from .signals import (NAMED_PULSES, REFERENCE_PULSE_SAMPLES, fft_upsample, lfm, load_pulse,
                       named_pulse, noise_sigma)
@@ -160,7 +161,8 @@ def ping_noise(seed: int, start: int, stop: int, n_samples: int) -> np.ndarray:
 
 @contextlib.contextmanager
 def dr_threads(threads: int | None) -> Iterator[None]:
-    """Run the enclosed Dr.Jit work on ``threads`` threads (None: leave as is), then restore."""
+    """Run the enclosed Dr.Jit work on ``threads`` threads (None: leave Dr.Jit's setting,
+    all cores unless changed), then restore."""
     if threads is None:
         yield
         return
@@ -189,7 +191,7 @@ class SimulationSettings:
     beams: Mapping | None = None
     keep_transients: bool = False
     chunk_size: int | None = None
-    threads: int | None = 1
+    threads: int | None = None                    # Dr.Jit threads; None: all (Dr.Jit's default)
     extra_meta: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -297,7 +299,7 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
 
 def _meta(spec: SceneSpec, s: SimulationSettings, crop: CropWindow, window: PathWindow) -> dict:
     return {"scene": spec.name, "scene_source": spec.source,
-            "box": [spec.box.lo.tolist(), spec.box.hi.tolist()],
+            "box": np.stack([spec.box.lo, spec.box.hi], axis=1).tolist(),   # [[x0, x1], ...] m
             "pulse_spec": s.pulse.spec, "paths_per_pose": int(s.paths_per_pose),
             "bounces": int(s.bounces), "bounce_set": [b + 1 for b in s.bounce_index],
             "oversample": int(s.oversample), "beams": {**DEFAULT_BEAMS, **dict(s.beams or {})},
@@ -350,16 +352,16 @@ def _digest(value) -> str:
 def _render_into(writer: DatasetStreamWriter, spec: SceneSpec, poses: Poses,
                  s: SimulationSettings, crop: CropWindow, window: PathWindow, progress: bool,
                  on_chunk: Callable[[int, int], None] | None) -> None:
-    """Render every pose the writer still lacks, chunk by chunk, and store its waveforms."""
-    chunk = s.chunk_size or choose_chunk_size(s.paths_per_pose, s.bounces, window.n_bins)
-    if chunk * s.paths_per_pose >= 2**32 or chunk * s.bounces * window.n_bins >= 2**32:
-        raise InputError(f"chunk size {chunk} needs 2^32 or more lanes or bins in one launch; "
-                         f"use at most {choose_chunk_size(s.paths_per_pose, s.bounces, window.n_bins, 2**62)}")
-    ranges = writer.missing_ranges(int(chunk))
-    if not ranges:
+    """Render every pose the writer still lacks, chunk by chunk, and store its waveforms.
+
+    Poses are rendered by :func:`sonarsim.render.iter_render` over each contiguous run of
+    missing poses; a pose's random numbers depend on its global index only, so a resumed
+    run renders exactly what an uninterrupted one would.
+    """
+    spans = writer.missing_ranges(max(1, len(poses)))   # maximal runs of missing poses
+    if not spans:
         return
     scene = spec.to_mitsuba()
-    integrator = make_integrator(s.bounces, s.beams)
     pulse_os = oversampled_pulse(s.pulse.samples, s.oversample)
     bar = None
     if progress:
@@ -367,21 +369,20 @@ def _render_into(writer: DatasetStreamWriter, spec: SceneSpec, poses: Poses,
         bar = tqdm(total=len(poses), initial=writer.n_done, unit="ping", desc="simulate",
                    dynamic_ncols=True, disable=None)
     try:
-        for start, stop in ranges:
-            sl = slice(start, stop)
-            with dr_threads(s.threads):
-                hist = integrator.render_transients(
-                    scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl],
-                    poses.rx_boresight[sl], window.path_start, window.bin_width, window.n_bins,
-                    s.paths_per_pose, s.seed, pose_offset=start)
-            wf = transients_to_waveforms(hist, pulse_os, s.oversample, crop.num_samples,
-                                         s.bounce_index)
-            writer.write(start, wf, hist if writer.layout is not None else None)
-            del hist
-            if bar is not None:
-                bar.update(stop - start)
-            if on_chunk is not None:
-                on_chunk(stop, len(poses))
+        with dr_threads(s.threads):
+            for first, end in spans:
+                for sl, hist in iter_render(scene, poses, paths_per_pose=s.paths_per_pose,
+                                            bounces=s.bounces, seed=s.seed,
+                                            chunk_size=s.chunk_size, beams=s.beams,
+                                            window=window, start=first, stop=end):
+                    wf = transients_to_waveforms(hist, pulse_os, s.oversample, crop.num_samples,
+                                                 s.bounce_index)
+                    writer.write(sl.start, wf, hist if writer.layout is not None else None)
+                    del hist
+                    if bar is not None:
+                        bar.update(sl.stop - sl.start)
+                    if on_chunk is not None:
+                        on_chunk(sl.stop, len(poses))
     finally:
         if bar is not None:
             bar.close()

@@ -62,18 +62,25 @@ class _DS:
 
 
 def test_default_bounds_from_dataset_box_else_sim_box():
-    g = Grid.from_dataset(_DS({"box_lo": [-0.125, -0.125, 0.0], "box_hi": [0.125, 0.125, 0.2]}),
-                          (3, 3, 3))
-    np.testing.assert_allclose(g.bounds, [[-0.125, 0.125], [-0.125, 0.125], [0.0, 0.2]])
-    g = Grid.from_dataset(_DS({"box": [[-0.1, -0.2, 0.0], [0.1, 0.2, 0.25]]}), (3, 3, 3))
+    g = Grid.from_dataset(_DS({"box": [[-0.1, 0.1], [-0.2, 0.2], [0.0, 0.25]]}), (3, 3, 3))
     np.testing.assert_allclose(g.bounds, [[-0.1, 0.1], [-0.2, 0.2], [0.0, 0.25]])
     g = Grid.from_dataset(_DS({}), (3, 3, 3))
     np.testing.assert_allclose(g.bounds[:, 0], geometry.SIM_BOX.lo)
     np.testing.assert_allclose(g.bounds[:, 1], geometry.SIM_BOX.hi)
     g = Grid.from_dataset(_DS({}), (3, 3, 1), bounds=[[0, 1], [0, 1], [0, 0]])
     assert g.shape == (3, 3, 1)
-    with pytest.raises(InputError):
-        scene_box_of(_DS({"box_lo": [0, 0], "box_hi": [1, 1]}))
+
+
+@pytest.mark.parametrize("meta", [
+    {"box": [[-0.1, -0.2, 0.0], [0.1, 0.2, 0.25]]},          # [lo, hi] rows: not the convention
+    {"box": [[0.1, -0.1], [-0.2, 0.2], [0.0, 0.25]]},        # x1 < x0
+    {"box": [[0, 1], [0, 1], [0, float("nan")]]},
+    {"box": "big"},
+    {"box_lo": [-0.1, -0.1, 0.0], "box_hi": [0.1, 0.1, 0.2]},  # old keys: refused, not ignored
+])
+def test_bad_dataset_box_is_an_input_error(meta):
+    with pytest.raises(InputError, match="box"):
+        scene_box_of(_DS(meta))
 
 
 def test_points_range_matches_points():

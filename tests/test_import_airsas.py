@@ -220,6 +220,7 @@ def test_cli_writes_dataset_and_reports_errors(small, tmp_path, capsys):
                  "--box", "-0.1", "0.1", "-0.1", "0.1", "0", "0.2", "--no-progress"]) == 0
     ds = SonarDataset.read(out)
     assert ds.waveforms.shape == (N_SMALL, 1000) and ds.temperatures.shape == (N_SMALL,)
+    assert ds.meta["box"] == [[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.2]]
     aim = np.array([0.0, 0.0, 0.1]) - ds.tx[0]
     np.testing.assert_allclose(ds.boresight[0], aim / np.linalg.norm(aim), atol=1e-12)
     (scan / "Coordinates.csv").unlink()

@@ -218,4 +218,4 @@ def test_boresights_from_vectors_or_given_box(schemas, tmp_path):
     aim = np.array([0.0, 0.0, 0.05]) - data["rx_coords"]
     np.testing.assert_allclose(ds.receiver_boresight, aim / np.linalg.norm(aim, axis=1)[:, None],
                                atol=1e-12)
-    assert ds.meta["box_hi"] == [0.1, 0.1, 0.1]
+    assert ds.meta["box"] == [[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.1]]

@@ -107,6 +107,8 @@ def test_snr_and_same_seed_identical(tmp_path):
     noisy = sim.simulate(spec, poses, tmp_path / "noisy.h5", settings(snr_db=12.0))
     again = sim.simulate(spec, poses, tmp_path / "again.h5", settings(snr_db=12.0))
     assert filecmp.cmp(noisy, again, shallow=False)
+    single = sim.simulate(spec, poses, tmp_path / "single.h5", settings(snr_db=12.0, threads=1))
+    assert filecmp.cmp(noisy, single, shallow=False)      # default threads: all cores
     assert not (tmp_path / ".noisy.h5.noiseless").exists()
     a, b = SonarDataset.read(clean), SonarDataset.read(noisy)
     noise = b.waveforms.astype(float) - a.waveforms
@@ -126,6 +128,7 @@ def test_resume_after_kill_matches_uninterrupted(tmp_path, monkeypatch):
     spec = load_scene("tabletop")
     poses = trajectory("cylindrical:7:2", box=spec.box)
     kw = dict(snr_db=15.0, chunk_size=3, keep_transients=True)
+    assert settings(**kw).threads is None          # resumed with the default: all threads
     reference = sim.simulate(spec, poses, tmp_path / "ref.h5", settings(**kw))
 
     out = tmp_path / "run.h5"

@@ -46,10 +46,9 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_default: in
     g.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     g.add_argument("--chunk-size", type=int, default=None, metavar="N",
                    help="poses per kernel launch (default: from a memory budget)")
-    g.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="Dr.Jit threads for rendering (default 1: bit-identical results for the "
-                        "same seed; more threads are faster but reproducible only to float32 "
-                        "rounding)")
+    g.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="Dr.Jit threads for rendering (default: all cores; results do not "
+                        "depend on it, see docs/simulation.md)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     b = parser.add_argument_group("beams")
     for end in ("tx", "rx"):
@@ -95,7 +94,7 @@ def check_common(args: argparse.Namespace) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be positive")
     if args.chunk_size is not None and args.chunk_size < 1:
         raise InputError(f"--chunk-size must be >= 1, got {args.chunk_size}")
-    if args.threads < 1:
+    if args.threads is not None and args.threads < 1:
         raise InputError(f"--threads must be >= 1, got {args.threads}")
     if not args.out.parent.is_dir():
         raise InputError(f"{args.out}: output directory does not exist")

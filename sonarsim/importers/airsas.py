@@ -450,7 +450,8 @@ def import_airsas(scan_dir: str | Path, background_dir: str | Path | None = None
         "raw_samples": int(n_samples),
         "rig_constants_from": "SysParams.csv" if rig.from_file else "sonarsim.geometry",
         "rig_tx": rig.tx.tolist(), "rig_rx": rig.rx.tolist(), "rig_center": rig.center.tolist(),
-        "box_lo": np.asarray(box.lo, float).tolist(), "box_hi": np.asarray(box.hi, float).tolist(),
+        # [[x0, x1], [y0, y1], [z0, z1]] m, the layout of Volume bounds
+        "box": np.stack([np.asarray(box.lo, float), np.asarray(box.hi, float)], axis=1).tolist(),
         # Per-ping angles/heights are not kept: HDF5 attributes are limited to 64 KiB and
         # the poses already encode them.
         "n_flights": int(len(flights)),

@@ -282,8 +282,9 @@ def import_pik(path: str | Path, *, box: "geometry.SceneBox | None" = None):
     start_sample = 0
     meta: dict[str, Any] = {"pik_file": str(path.resolve()), "pulse_source": pulse_source,
                             "boresight_from": aim, "box_from": box_from,
-                            "box_lo": np.asarray(box_lo, float).tolist(),
-                            "box_hi": np.asarray(box_hi, float).tolist()}
+                            # [[x0, x1], [y0, y1], [z0, z1]] m, the layout of Volume bounds
+                            "box": np.stack([np.asarray(box_lo, float), np.asarray(box_hi, float)],
+                                            axis=1).tolist()}
     if crop is not None:
         w = f"{where}: crop_settings"
         num = _scalar(crop, "num_samples", w, required=False)
