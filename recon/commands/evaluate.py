@@ -1,0 +1,122 @@
+"""``recon evaluate V.h5 --gt MESH``: IoU, Chamfer, normal consistency, image metrics."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sonarsim.dataset import Volume
+
+from .. import export, metrics
+
+HELP = "Evaluate a volume against a ground-truth mesh (IoU, Chamfer, PSNR/SSIM, threshold sweep)."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("volume", type=Path, help="volume file (.h5)")
+    parser.add_argument("--gt", required=True,
+                        help="ground truth: mesh file, dataset .h5 with gt/, or scene TOML/name")
+    parser.add_argument("--threshold", type=float, default=export.DEFAULT_THRESHOLD,
+                        help="threshold on the normalised magnitude (default 0.2)")
+    parser.add_argument("--normalize", choices=export.NORMALIZATIONS, default="minmax")
+    parser.add_argument("--crop", type=float, nargs=6, metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
+                        help="evaluate only inside this box (m), e.g. to leave out the ground")
+    parser.add_argument("--no-sweep", action="store_true", help="skip the threshold sweep")
+    parser.add_argument("--no-images", action="store_true",
+                        help="skip the rendered-image metrics (PSNR, SSIM)")
+    parser.add_argument("--samples", type=int, default=metrics.N_SURFACE_SAMPLES,
+                        help="surface samples per mesh for Chamfer (default 20000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--with-sweep-rows", action="store_true",
+                        help="include every sweep row in the JSON output")
+
+
+def evaluate_file(path: Path, gt_mesh, *, threshold: float, normalize: str = "minmax",
+                  sweep: bool = True, images: bool = True, samples: int =
+                  metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None) -> dict:
+    """All metrics of one volume file (see :func:`recon.metrics.evaluate`).
+
+    ``crop``: six numbers x0 x1 y0 y1 z0 z1 (m) or None. Image metrics render the
+    (cropped) reconstruction against the whole GT mesh.
+    """
+    export.check_threshold(threshold)
+    vol = Volume.read(path)
+    box = None if crop is None else np.asarray(crop, dtype=np.float64).reshape(3, 2)
+    result = metrics.evaluate(vol.volume, vol.bounds, gt_mesh, threshold=threshold,
+                              sweep=metrics.DEFAULT_SWEEP if sweep else None,
+                              normalization=normalize, n_samples=samples, seed=seed, crop=box)
+    result = {"volume": str(path), "method": vol.method, **result}
+    if images:
+        from .. import views
+        volume, bounds = vol.volume, vol.bounds
+        if box is not None:
+            volume, bounds = export.crop_volume(volume, bounds, box)
+        mesh = export.mesh_from_volume(volume, bounds, threshold, normalize)
+        result.update(views.image_metrics(gt_mesh, mesh))
+    return result
+
+
+def json_safe(value):
+    """Replace non-finite floats by None (JSON has no inf/NaN): a PSNR of identical images
+    (inf) and an undefined distance both become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def _fmt(value, unit: str = "") -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, float):
+        if math.isinf(value):
+            return "inf"
+        return f"{value:.4g}{unit}"
+    return f"{value}{unit}"
+
+
+ROWS = [("iou", "IoU (5 mm cells)", ""), ("chamfer_sq", "Chamfer, squared (ref.)", " m²"),
+        ("chamfer_m", "Chamfer, mean L2", " m"), ("accuracy_m", "  pred -> GT", " m"),
+        ("completeness_m", "  GT -> pred", " m"),
+        ("chamfer_vox_sq", "Chamfer vs voxels, sq.", " m²"),
+        ("normal_consistency", "normal consistency", ""),
+        ("psnr_depth", "PSNR depth", " dB"), ("ssim_depth", "SSIM depth", ""),
+        ("psnr_shaded", "PSNR shaded", " dB"), ("ssim_shaded", "SSIM shaded", "")]
+
+
+def format_table(result: dict) -> list[str]:
+    lines = [f"{result['volume']} ({result['method']}), threshold {result['threshold']:g}, "
+             f"normalisation {result['normalization']}"]
+    if result["empty"]:
+        lines.append("  reconstruction is empty at this threshold: no voxel above it")
+    for key, label, unit in ROWS:
+        if key not in result:
+            continue
+        line = f"  {label:<26} {_fmt(result[key], unit):>14}"
+        if f"best_{key}" in result:
+            line += (f"   best {_fmt(result[f'best_{key}'], unit)}"
+                     f" @ {_fmt(result[f'best_{key}_threshold'])}")
+        lines.append(line)
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    gt = metrics.load_gt_mesh(args.gt)
+    result = evaluate_file(args.volume, gt, threshold=args.threshold,
+                           normalize=args.normalize, sweep=not args.no_sweep,
+                           images=not args.no_images, samples=args.samples, seed=args.seed,
+                           crop=args.crop)
+    if not args.with_sweep_rows:
+        result.pop("sweep", None)
+    if args.json:
+        print(json.dumps(json_safe(result), allow_nan=False))
+    else:
+        print("\n".join(format_table(result)))
+    return 0

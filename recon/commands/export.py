@@ -1,0 +1,56 @@
+"""``recon export V.h5``: MIPs (PNG/EXR), slices and an iso-surface mesh of a volume."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sonarsim.dataset import Volume
+from sonarsim.errors import InputError
+
+from .. import export
+
+HELP = "Export a volume: maximum-intensity projections, slices, marching-cubes mesh."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("volume", type=Path, help="volume file (.h5) from a recon solver")
+    parser.add_argument("--mesh", type=Path, help="iso-surface mesh (.ply/.obj/.stl), world metres")
+    parser.add_argument("--mip", type=Path, help="PNG of the MIPs along z, y, x with a colour bar")
+    parser.add_argument("--exr", type=Path, help="multi-part OpenEXR of the MIPs (float32)")
+    parser.add_argument("--slices", type=Path, metavar="DIR",
+                        help="directory for one grey PNG per slice plus slices.json")
+    parser.add_argument("--slice-axis", choices=("x", "y", "z"), default="z",
+                        help="axis the slices are taken along (default z)")
+    parser.add_argument("--threshold", type=float, default=export.DEFAULT_THRESHOLD,
+                        help="iso-level on the normalised magnitude (default 0.2)")
+    parser.add_argument("--normalize", choices=export.NORMALIZATIONS, default="minmax",
+                        help="magnitude normalisation: min-max (reference) or divide by max")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not any((args.mesh, args.mip, args.exr, args.slices)):
+        raise InputError("nothing to export: give at least one of --mesh, --mip, --exr, --slices")
+    threshold = export.check_threshold(args.threshold)
+    vol = Volume.read(args.volume)
+    mag = export.normalized_magnitude(vol.volume, args.normalize)
+    mesh = None
+    if args.mesh:
+        mesh = export.extract_surface(mag, vol.bounds, threshold)
+        if len(mesh.faces) == 0:
+            raise InputError(f"{args.volume}: no voxel above threshold {threshold:g} "
+                             "(normalised magnitude); no surface to write to "
+                             f"{args.mesh}; try a lower --threshold")
+        export.write_mesh(args.mesh, mesh)
+        print(f"mesh: {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.faces)} faces, "
+              f"threshold {threshold:g})")
+    title = f"{args.volume.name}: {vol.method}, |σ| normalised ({args.normalize})"
+    if args.mip:
+        export.write_mip_png(args.mip, mag, vol.bounds, title=title)
+        print(f"mip: {args.mip}")
+    if args.exr:
+        export.write_mip_exr(args.exr, mag, vol.bounds)
+        print(f"exr: {args.exr} (parts mip_z, mip_y, mip_x)")
+    if args.slices:
+        files = export.write_slices(args.slices, mag, vol.bounds, "xyz".index(args.slice_axis))
+        print(f"slices: {len(files)} PNGs in {args.slices}")
+    return 0

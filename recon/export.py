@@ -1,0 +1,344 @@
+"""Export of reconstructed volumes: normalised magnitude, MIPs, slices, iso-surface mesh.
+
+A volume is a complex array ``[nx, ny, nz]`` whose voxel centres are
+``linspace(lo, hi, n)`` per axis (``bounds`` = ``[[x0, x1], [y0, y1], [z0, z1]]``, metres).
+
+Decisions (see docs/evaluation.md):
+
+* **Normalisation.** ``|v|`` min-max normalised to [0, 1] by default, as the reference
+  does, so that a threshold (default 0.2) means the same thing as in the paper. ``max``
+  (divide by the maximum only) is available. A constant volume (max == min, e.g. all
+  zeros) normalises to all zeros: it contains no structure and nothing lies above any
+  threshold.
+* **Mesh.** Marching cubes (scikit-image, Lewiner) on the normalised magnitude padded
+  by one voxel of 0 (so surfaces touching the box are closed), at ``level = threshold``.
+  Vertices are mapped to world coordinates as ``lo + (p - 1) * spacing`` with
+  ``spacing = (hi - lo) / (n - 1)`` and ``p`` the padded index. The reference maps with
+  ``/n`` instead of ``/(n - 1)``, keeps the padding offset and swaps x/y
+  (REFERENCE_SPEC §7.1); those shift and stretch its meshes by one to two voxels.
+* **Single voxel along an axis.** Its spacing is undefined; the smallest spacing of the
+  other axes is used (the voxel is treated as a cube). A 1x1x1 volume has no spacing at
+  all and raises :class:`InputError`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from sonarsim.errors import InputError
+
+NORMALIZATIONS = ("minmax", "max")
+DEFAULT_THRESHOLD = 0.2
+AXIS_NAMES = "xyz"
+
+
+# --------------------------------------------------------------------------- geometry
+
+def check_volume_array(volume: np.ndarray, name: str = "volume") -> np.ndarray:
+    """Validate a volume array ``[nx, ny, nz]`` (complex or real) and return it."""
+    arr = np.asarray(volume)
+    if arr.ndim != 3 or min(arr.shape) < 1:
+        raise InputError(f"{name}: expected a 3-D array [nx, ny, nz], got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or infinite values")
+    return arr
+
+
+def check_bounds(bounds, shape: tuple[int, int, int]) -> np.ndarray:
+    """Validate ``bounds`` [3, 2] (metres) against a volume shape and return float64 bounds."""
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (3, 2) or not np.all(np.isfinite(b)):
+        raise InputError(f"bounds: expected finite [[x0,x1],[y0,y1],[z0,z1]], got {b.tolist()}")
+    for a in range(3):
+        if shape[a] > 1 and not b[a, 1] > b[a, 0]:
+            raise InputError(f"bounds: {AXIS_NAMES[a]} range {b[a].tolist()} is empty "
+                             f"but the volume has {shape[a]} voxels along {AXIS_NAMES[a]}")
+    return b
+
+
+def voxel_spacing(bounds, shape: tuple[int, int, int]) -> np.ndarray:
+    """Voxel spacing [3] in metres: ``(hi - lo) / (n - 1)``.
+
+    An axis with a single voxel takes the smallest spacing of the other axes.
+    """
+    b = check_bounds(bounds, shape)
+    n = np.asarray(shape)
+    multi = n > 1
+    if not multi.any():
+        raise InputError("volume has a single voxel: its voxel size is undefined")
+    spacing = np.empty(3)
+    spacing[multi] = (b[multi, 1] - b[multi, 0]) / (n[multi] - 1)
+    spacing[~multi] = spacing[multi].min()
+    return spacing
+
+
+def voxel_axes(bounds, shape: tuple[int, int, int]) -> list[np.ndarray]:
+    """Voxel-centre coordinates per axis, ``[x [nx], y [ny], z [nz]]`` in metres."""
+    b = check_bounds(bounds, shape)
+    return [np.linspace(b[a, 0], b[a, 1], shape[a]) if shape[a] > 1
+            else np.array([b[a, 0]]) for a in range(3)]  # a single voxel sits at lo
+
+
+def crop_volume(volume: np.ndarray, bounds, box) -> tuple[np.ndarray, np.ndarray]:
+    """The voxels whose centres lie in ``box`` [3, 2] (metres, inclusive).
+
+    Returns (sub-volume, its bounds [3, 2]); :class:`InputError` when the box holds no
+    voxel centre along some axis.
+    """
+    arr = check_volume_array(volume)
+    box = np.asarray(box, dtype=np.float64)
+    if box.shape != (3, 2) or not np.all(box[:, 1] >= box[:, 0]):
+        raise InputError(f"crop box: expected [[x0,x1],[y0,y1],[z0,z1]] with x0 <= x1, "
+                         f"got {box.tolist()}")
+    axes = voxel_axes(bounds, arr.shape)
+    keep = [np.nonzero((c >= box[a, 0] - 1e-9) & (c <= box[a, 1] + 1e-9))[0]
+            for a, c in enumerate(axes)]
+    for a, k in enumerate(keep):
+        if len(k) == 0:
+            raise InputError(f"crop box {box[a].tolist()} along {AXIS_NAMES[a]} holds no voxel "
+                             f"centre of the volume ({axes[a][0]:.4g} .. {axes[a][-1]:.4g} m)")
+    sub = arr[keep[0][0]:keep[0][-1] + 1, keep[1][0]:keep[1][-1] + 1, keep[2][0]:keep[2][-1] + 1]
+    sub_bounds = np.array([[axes[a][k[0]], axes[a][k[-1]]] for a, k in enumerate(keep)])
+    return sub, sub_bounds
+
+
+# ----------------------------------------------------------------------- magnitude
+
+def normalized_magnitude(volume: np.ndarray, mode: str = "minmax") -> np.ndarray:
+    """``|volume|`` scaled to [0, 1] as float32 ``[nx, ny, nz]``.
+
+    ``mode='minmax'``: ``(m - min) / (max - min)`` (the reference); ``'max'``: ``m / max``.
+    A constant volume gives all zeros.
+    """
+    if mode not in NORMALIZATIONS:
+        raise InputError(f"normalisation must be one of {NORMALIZATIONS}, got {mode!r}")
+    mag = np.abs(check_volume_array(volume)).astype(np.float64)
+    hi = float(mag.max())
+    lo = float(mag.min()) if mode == "minmax" else 0.0
+    if not hi > lo:
+        return np.zeros(mag.shape, dtype=np.float32)
+    return ((mag - lo) / (hi - lo)).astype(np.float32)
+
+
+def check_threshold(threshold: float) -> float:
+    """A threshold on the normalised magnitude must lie in [0, 1)."""
+    t = float(threshold)
+    if not 0.0 <= t < 1.0:
+        raise InputError(f"threshold must lie in [0, 1), got {threshold}")
+    return t
+
+
+def occupied_points(magnitude: np.ndarray, bounds, threshold: float) -> np.ndarray:
+    """World coordinates [K, 3] of the voxel centres with ``magnitude > threshold``."""
+    axes = voxel_axes(bounds, magnitude.shape)
+    idx = np.nonzero(magnitude > check_threshold(threshold))
+    return np.stack([axes[a][idx[a]] for a in range(3)], axis=1)
+
+
+# ----------------------------------------------------------------------------- mesh
+
+def extract_surface(magnitude: np.ndarray, bounds, threshold: float = DEFAULT_THRESHOLD
+                    ) -> trimesh.Trimesh:
+    """Iso-surface of a normalised magnitude ``[nx, ny, nz]`` at ``threshold``, in world metres.
+
+    Faces are wound so that normals point out of the region above the threshold. A volume
+    with nothing above the threshold gives an empty mesh (0 vertices, 0 faces).
+    """
+    from skimage.measure import marching_cubes
+
+    t = check_threshold(threshold)
+    mag = np.asarray(magnitude, dtype=np.float32)
+    spacing = voxel_spacing(bounds, mag.shape)
+    lo = np.asarray(bounds, dtype=np.float64)[:, 0]
+    if not (mag > t).any():
+        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    padded = np.pad(mag, 1, mode="constant", constant_values=min(0.0, float(mag.min())))
+    verts, faces, _, _ = marching_cubes(padded, level=t, spacing=tuple(spacing),
+                                        allow_degenerate=False)
+    world = lo + verts.astype(np.float64) - spacing  # remove the one-voxel padding
+    # 'descent' winding makes face normals point towards higher values; flip to outward.
+    mesh = trimesh.Trimesh(world, faces[:, ::-1], process=False)
+    return mesh
+
+
+def mesh_from_volume(volume: np.ndarray, bounds, threshold: float = DEFAULT_THRESHOLD,
+                     normalization: str = "minmax") -> trimesh.Trimesh:
+    """:func:`extract_surface` of :func:`normalized_magnitude` of a complex volume."""
+    return extract_surface(normalized_magnitude(volume, normalization), bounds, threshold)
+
+
+# ----------------------------------------------------------------------------- MIPs
+
+def mip(magnitude: np.ndarray, axis: int) -> np.ndarray:
+    """Maximum-intensity projection along ``axis`` as an image ``[rows, cols]``.
+
+    Rows/columns are the remaining axes, the higher-index axis as rows: along z ->
+    ``[ny, nx]``, along y -> ``[nz, nx]``, along x -> ``[nz, ny]``; row 0 is the lowest
+    coordinate (display with ``origin='lower'``).
+    """
+    return np.asarray(magnitude).max(axis=axis).T
+
+
+def mip_axes(axis: int) -> tuple[int, int]:
+    """(column axis, row axis) of :func:`mip` along ``axis``."""
+    u, v = [a for a in range(3) if a != axis]
+    return u, v
+
+
+def pixel_extent(bounds, shape, axis: int) -> tuple[float, float]:
+    """Outer edges (lo - d/2, hi + d/2) in metres of the voxels along ``axis``."""
+    b = np.asarray(bounds, dtype=np.float64)
+    d = voxel_spacing(b, shape)[axis]
+    last = b[axis, 0] + (shape[axis] - 1) * d  # = hi, or lo for a single voxel
+    return float(b[axis, 0] - d / 2), float(last + d / 2)
+
+
+def _atomic_target(path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return tmp
+
+
+def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = "",
+                  dpi: int = 120) -> Path:
+    """Write the three MIPs (along z, y, x) with metric axes and a colour bar as a PNG."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    shape = magnitude.shape
+    fig, axs = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
+    image = None
+    for ax, axis in zip(axs, (2, 1, 0)):
+        u, v = mip_axes(axis)
+        extent = (*pixel_extent(bounds, shape, u), *pixel_extent(bounds, shape, v))
+        image = ax.imshow(mip(magnitude, axis), origin="lower", extent=extent,
+                          cmap="inferno", vmin=0.0, vmax=1.0, interpolation="nearest")
+        ax.set_xlabel(f"{AXIS_NAMES[u]} (m)")
+        ax.set_ylabel(f"{AXIS_NAMES[v]} (m)")
+        ax.set_title(f"max over {AXIS_NAMES[axis]}")
+        ax.set_aspect("equal")
+    fig.colorbar(image, ax=list(axs), shrink=0.85, label="normalised |σ|")
+    if title:
+        fig.suptitle(title)
+    tmp = _atomic_target(path)
+    try:
+        fig.savefig(tmp, dpi=dpi, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def write_mip_exr(path: str | Path, magnitude: np.ndarray, bounds) -> Path:
+    """Write the three MIPs as float32 into a multi-part OpenEXR file.
+
+    Parts ``mip_z``, ``mip_y``, ``mip_x``, each one channel ``Y`` stored as displayed
+    (row 0 = the highest row coordinate). Header attributes per part: ``sonarsim_u_axis``,
+    ``sonarsim_v_axis`` (axis names of columns/rows) and ``sonarsim_u_range_m``,
+    ``sonarsim_v_range_m`` (outer pixel edges, metres). Read back with :func:`read_mip_exr`.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    shape = magnitude.shape
+    images = {}
+    for axis in (2, 1, 0):
+        images[axis] = np.ascontiguousarray(mip(magnitude, axis)[::-1], dtype=np.float32)
+    width = max(im.shape[1] for im in images.values())
+    height = max(im.shape[0] for im in images.values())
+    parts = []
+    for axis, im in images.items():
+        u, v = mip_axes(axis)
+        header = {
+            "compression": OpenEXR.ZIP_COMPRESSION,
+            "type": OpenEXR.scanlineimage,
+            # all parts of a multi-part file must share the display window
+            "displayWindow": (np.array([0, 0], np.int32),
+                              np.array([width - 1, height - 1], np.int32)),
+            "dataWindow": (np.array([0, 0], np.int32),
+                           np.array([im.shape[1] - 1, im.shape[0] - 1], np.int32)),
+            "sonarsim_u_axis": AXIS_NAMES[u],
+            "sonarsim_v_axis": AXIS_NAMES[v],
+            "sonarsim_u_range_m": " ".join(f"{x:.9g}" for x in pixel_extent(bounds, shape, u)),
+            "sonarsim_v_range_m": " ".join(f"{x:.9g}" for x in pixel_extent(bounds, shape, v)),
+        }
+        parts.append(OpenEXR.Part(header, {"Y": im}, f"mip_{AXIS_NAMES[axis]}"))
+    tmp = _atomic_target(path)
+    try:
+        OpenEXR.File(parts).write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def read_mip_exr(path: str | Path) -> dict[str, np.ndarray]:
+    """The MIPs of :func:`write_mip_exr` as ``{'mip_z': [ny, nx], ...}`` (row 0 = lowest)."""
+    import OpenEXR
+
+    try:
+        f = OpenEXR.File(str(path), separate_channels=True)
+    except Exception as exc:  # OpenEXR raises RuntimeError/OSError variants
+        from sonarsim.errors import FormatError
+        raise FormatError(f"{path}: not a readable OpenEXR file ({exc})") from None
+    return {p.name(): np.asarray(p.channels["Y"].pixels)[::-1] for p in f.parts}
+
+
+# --------------------------------------------------------------------------- slices
+
+def write_slices(directory: str | Path, magnitude: np.ndarray, bounds, axis: int = 2
+                 ) -> list[Path]:
+    """Write one 8-bit grey PNG per slice along ``axis`` plus ``slices.json``.
+
+    Grey level = round(255 * normalised magnitude); rows/columns as in :func:`mip`
+    (highest row coordinate at the top of the picture). ``slices.json`` lists the world
+    coordinate (m) of each slice and the pixel extents.
+    """
+    from PIL import Image
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    coords = voxel_axes(bounds, magnitude.shape)[axis]
+    u, v = mip_axes(axis)
+    name = AXIS_NAMES[axis]
+    written = []
+    for k, c in enumerate(coords):
+        img = np.take(magnitude, k, axis=axis).T[::-1]
+        grey = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+        p = directory / f"slice_{name}_{k:04d}.png"
+        Image.fromarray(grey, mode="L").save(p)
+        written.append(p)
+    meta = {"axis": name, "coordinates_m": [float(c) for c in coords],
+            "files": [p.name for p in written],
+            "u_axis": AXIS_NAMES[u], "u_range_m": pixel_extent(bounds, magnitude.shape, u),
+            "v_axis": AXIS_NAMES[v], "v_range_m": pixel_extent(bounds, magnitude.shape, v),
+            "value": "round(255 * normalised magnitude); top row = highest v"}
+    (directory / "slices.json").write_text(json.dumps(meta, indent=1))
+    return written
+
+
+def write_mesh(path: str | Path, mesh: trimesh.Trimesh) -> Path:
+    """Write a mesh (PLY, OBJ, STL, OFF, GLB, by suffix) atomically."""
+    path = Path(path)
+    kind = path.suffix.lower().lstrip(".")
+    if kind not in ("ply", "obj", "stl", "off", "glb"):
+        raise InputError(f"{path}: mesh format must be .ply, .obj, .stl, .off or .glb")
+    tmp = _atomic_target(path)
+    try:
+        mesh.export(tmp, file_type=kind)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path

@@ -1,0 +1,228 @@
+"""Tests of recon.metrics, recon.views and `recon evaluate` / `recon compare` against
+closed forms: containment, IoU and Chamfer of a shifted cube, threshold sweeps,
+depth renders of a sphere, degenerate reconstructions."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from recon import export, metrics
+from sonarsim.errors import FormatError, InputError
+
+# Cube of side S with faces between lattice points of spacing H, so that exactly
+# S/H voxel centres per axis lie inside and they fill whole 5 mm IoU cells.
+S, D, H = 0.05, 0.01, 0.0025
+CUBE_LO = -0.0262
+BOX = np.array([[-0.1, 0.1]] * 3)
+N = 81  # voxel centres -0.1, -0.0975, ..., 0.1
+
+
+def lattice():
+    return np.meshgrid(*export.voxel_axes(BOX, (N, N, N)), indexing="ij")
+
+
+def cube_volume(shift: float = 0.0) -> np.ndarray:
+    """0.5 + (signed Chebyshev distance)/H, clipped: the 0.5 level is the cube's surface."""
+    x, y, z = lattice()
+    c = CUBE_LO + S / 2
+    cheb = np.maximum.reduce([np.abs(x - c - shift), np.abs(y - c), np.abs(z - c)])
+    return np.clip(0.5 + (S / 2 - cheb) / H, 0.0, 1.0).astype(np.complex64)
+
+
+def cube_mesh() -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=[S] * 3).apply_translation([CUBE_LO + S / 2] * 3)
+
+
+def shifted_cube_chamfer(s: float, d: float) -> tuple[float, float]:
+    """Closed-form Chamfer between the surfaces of a cube of side s and its copy shifted
+    by d < s along x, for area-uniform samples: (squared definition [m²], mean L2 [m]).
+
+    Per face of the first cube (each 1/6 of the area): the -x face is d away; on the +x
+    face the distance is min(d, distance to the face's border); on the 4 side faces
+    max(0, d - u) over the first d of the width. Both directions are equal by symmetry.
+    """
+    mean = (d + s / 6 * (1 - (1 - 2 * d / s) ** 3) + 4 * d * d / (2 * s)) / 6
+    mean_sq = (d * d + (d * d - 8 * d ** 3 / (3 * s) + 2 * d ** 4 / s ** 2)
+               + 4 * d ** 3 / (3 * s)) / 6
+    return 2 * mean_sq, mean
+
+
+def test_containment_majority_vote_survives_a_hole():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    coords = [np.linspace(-0.08, 0.08, 33)] * 3
+    x, y, z = np.meshgrid(*coords, indexing="ij")
+    r = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+    clear = np.abs(r - 0.05) > 0.002  # icosphere facets deviate < 0.5 mm from r = 0.05
+    inside = metrics.inside_mesh_lattice(sphere, coords)
+    assert np.array_equal(inside[clear], (r < 0.05)[clear])
+    holed = sphere.copy()
+    holed.update_faces(holed.face_normals[:, 2] < 0.97)  # open the north pole
+    assert not holed.is_watertight
+    z_parity = metrics._axis_parity(np.asarray(holed.triangles), coords, 2)
+    assert not np.array_equal(z_parity[clear], (r < 0.05)[clear])  # one vote is wrong...
+    inside = metrics.inside_mesh_lattice(holed, coords)
+    assert np.array_equal(inside[clear], (r < 0.05)[clear])  # ...the majority is right
+
+
+def test_cell_grid_and_iou_basics():
+    grid = metrics.CellGrid(np.zeros(3), np.array([0.02, 0.01, 0.01]), 0.005)
+    assert grid.shape == (4, 2, 2)
+    occ = grid.occupancy(np.array([[0.0, 0.0, 0.0], [0.02, 0.01, 0.01], [0.005, 0.0, 0.0],
+                                   [0.03, 0.0, 0.0], [-0.001, 0.0, 0.0]]))
+    assert occ.sum() == 3 and occ[0, 0, 0] and occ[3, 1, 1] and occ[1, 0, 0]
+    assert metrics.iou(occ, occ) == 1.0
+    assert metrics.iou(occ, np.zeros_like(occ)) == 0.0
+    assert metrics.iou(np.zeros_like(occ), np.zeros_like(occ)) == 1.0
+
+
+def test_chamfer_closed_form_and_empty():
+    a = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    b = a + [0.0, 0.003, 0.0]
+    c = metrics.chamfer(a, b)
+    assert c["sq"] == pytest.approx(2 * 0.003 ** 2) and c["m"] == pytest.approx(0.003)
+    assert metrics.chamfer(a, a)["sq"] == 0.0
+    assert metrics.chamfer(a, np.zeros((0, 3)))["sq"] is None
+
+
+def test_volume_of_the_gt_itself_scores_perfectly_and_a_shift_costs_the_closed_form():
+    gt = cube_mesh()
+    n = 20_000
+    # the sampling floor: two independent sample sets of the same surface are about
+    # 0.5 * sqrt(area / n) apart on average (random points in the plane)
+    floor = 0.5 * np.sqrt(gt.area / n)
+    perfect = metrics.evaluate(cube_volume(), BOX, gt, threshold=0.5, sweep=None)
+    assert perfect["iou"] == 1.0
+    assert perfect["chamfer_m"] < 1.5 * floor
+    assert perfect["chamfer_sq"] < 1e-6
+    assert perfect["normal_consistency"] > 0.95
+    shifted = metrics.evaluate(cube_volume(D), BOX, gt, threshold=0.5, sweep=None)
+    assert shifted["iou"] == pytest.approx((S - D) / (S + D), abs=1e-12)
+    expected_sq, expected_m = shifted_cube_chamfer(S, D)
+    assert shifted["chamfer_sq"] == pytest.approx(expected_sq, rel=0.05)
+    assert shifted["chamfer_m"] == pytest.approx(np.hypot(expected_m, floor), rel=0.1)
+    assert shifted["normal_consistency"] < perfect["normal_consistency"] - 0.1
+
+
+def test_binary_voxelisation_of_a_mesh_scores_high():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.04)
+    bounds = np.array([[-0.1, 0.1], [-0.1, 0.1], [-0.06, 0.06]])
+    shape = (63, 63, 38)
+    inside = metrics.inside_mesh_lattice(sphere, export.voxel_axes(bounds, shape))
+    res = metrics.evaluate(inside.astype(np.complex64), bounds, sphere, threshold=0.2,
+                           sweep=None, n_samples=5000)
+    assert res["iou"] == 1.0  # same lattice, same 5 mm cells
+    assert res["chamfer_m"] < export.voxel_spacing(bounds, shape).max()
+
+
+def test_threshold_sweep_is_monotone_where_it_must_be_and_finds_the_true_level():
+    # Gaussian blob exp(-(r/sigma)^2) against a sphere of radius R: the iso-surface at
+    # threshold t has radius sigma*sqrt(-ln t), so the true level is exp(-(R/sigma)^2).
+    radius, sigma = 0.04, 0.05
+    bounds = np.array([[-0.1, 0.1]] * 3)
+    shape = (41, 41, 41)
+    x, y, z = np.meshgrid(*export.voxel_axes(bounds, shape), indexing="ij")
+    blob = np.exp(-(x * x + y * y + z * z) / sigma ** 2)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    res = metrics.evaluate(blob, bounds, sphere, n_samples=4000)
+    rows = res["sweep"]
+    ts = [r["threshold"] for r in rows]
+    assert ts == sorted(ts) and 0.2 in ts
+    voxels = [r["occupied_voxels"] for r in rows]
+    assert all(a >= b for a, b in zip(voxels, voxels[1:]))
+    true_level = np.exp(-(radius / sigma) ** 2)  # 0.527
+    for key in ("best_chamfer_sq_threshold", "best_chamfer_m_threshold"):
+        assert abs(res[key] - true_level) <= 0.05 + 1e-9
+    assert abs(res["best_iou_threshold"] - true_level) <= 0.1 + 1e-9
+    cham = [r["chamfer_m"] for r in rows]
+    k = int(np.argmin(cham))
+    assert all(a > b for a, b in zip(cham[:k], cham[1:k + 1]))  # falls to the minimum
+    assert all(a < b for a, b in zip(cham[k:], cham[k + 1:]))   # rises after it
+    assert res["best_iou"] >= res["iou"] and res["best_iou"] > 0.9
+
+
+def test_all_zero_volume_is_defined():
+    res = metrics.evaluate(np.zeros((10, 10, 10), np.complex64), BOX, cube_mesh(),
+                           n_samples=1000)
+    assert res["empty"] and res["iou"] == 0.0
+    assert res["chamfer_sq"] is None and res["chamfer_m"] is None
+    assert res["best_chamfer_sq"] is None and res["best_iou"] == 0.0
+
+
+def test_depth_render_of_a_sphere_matches_ray_sphere_intersection(mi):
+    from recon import views
+
+    cams = views.Turntable(n_views=3, resolution=48)
+    centre, radius = np.array([0.0, 0.0, 0.1]), 0.05
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    sphere.apply_translation(centre)
+    out = views.render(sphere, cams)
+    o, d, forward = cams.rays()
+    oc = o - centre
+    b = np.sum(oc * d, axis=1)
+    disc = b * b - (np.sum(oc * oc, axis=1) - radius ** 2)
+    t = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), 0.0)
+    depth = (t * np.sum(d * np.repeat(forward, 48 * 48, axis=0), axis=1)).reshape(3, 48, 48)
+    safe = np.abs(disc.reshape(3, 48, 48)) > 2e-4  # skip pixels grazing the silhouette
+    assert np.abs(out["depth"] - depth)[safe].max() < 2e-4
+    assert out["shaded"].max() <= 1.0 and out["shaded"][depth > 0].min() >= 0.0
+    same = views.image_metrics(sphere, sphere, cams)
+    assert same["psnr_depth"] == float("inf") and same["ssim_depth"] == pytest.approx(1.0)
+    moved = views.image_metrics(sphere, sphere.copy().apply_translation([0, 0.01, 0]), cams)
+    assert np.isfinite(moved["psnr_depth"]) and moved["ssim_shaded"] < 0.99
+
+
+def test_cli_evaluate_json_and_compare(tmp_path, capsys, mi):
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+
+    gt = tmp_path / "cube.ply"
+    cube_mesh().export(gt)
+    Volume(cube_volume(), BOX, "test").write(tmp_path / "v.h5")
+    Volume(np.zeros((8, 8, 8), np.complex64), BOX, "zero").write(tmp_path / "z.h5")
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--json",
+                 "--samples", "3000", "--threshold", "0.5"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for key in ("iou", "chamfer_sq", "chamfer_m", "threshold", "best_iou",
+                "best_iou_threshold", "best_chamfer_sq", "best_chamfer_sq_threshold",
+                "psnr_depth", "ssim_depth", "psnr_shaded", "ssim_shaded"):
+        assert key in res
+    assert res["iou"] == 1.0 and res["threshold"] == 0.5
+    assert main(["evaluate", str(tmp_path / "z.h5"), "--gt", str(gt), "--json",
+                 "--samples", "500", "--no-images", "--no-sweep"]) == 0
+    text = capsys.readouterr().out
+    assert "NaN" not in text and "Infinity" not in text
+    zero = json.loads(text)
+    assert zero["iou"] == 0.0 and zero["chamfer_sq"] is None and zero["empty"] is True
+    assert main(["evaluate", str(tmp_path / "z.h5"), "--gt", str(tmp_path / "no.obj")]) == 2
+    out = tmp_path / "cmp.png"
+    assert main(["compare", str(tmp_path / "v.h5"), str(tmp_path / "z.h5"), "--gt", str(gt),
+                 "--out", str(out)]) == 0
+    assert out.is_file() and out.stat().st_size > 10_000
+
+
+def test_load_gt_mesh_errors(tmp_path):
+    with pytest.raises(FormatError):
+        metrics.load_gt_mesh(tmp_path / "missing.obj")
+    (tmp_path / "bad.obj").write_text("this is not a mesh\n")
+    with pytest.raises(FormatError):
+        metrics.load_gt_mesh(tmp_path / "bad.obj")
+
+
+def test_crop_leaves_out_a_ground_slab():
+    vol = cube_volume()
+    vol[:, :, :2] = 1.0  # a bright "ground" in the two lowest layers, z = -0.1, -0.0975
+    gt = cube_mesh()
+    full = metrics.evaluate(vol, BOX, gt, threshold=0.5, sweep=None, n_samples=4000)
+    crop = np.array([[-0.1, 0.1], [-0.1, 0.1], [-0.09, 0.1]])
+    cut = metrics.evaluate(vol, BOX, gt, threshold=0.5, sweep=None, n_samples=4000, crop=crop)
+    # the slab fills the 40 x 40 lowest cells; the cube fills 10 x 10 x 10 cells
+    assert full["iou"] == pytest.approx(1000 / (1000 + 1600)) and cut["iou"] == 1.0
+    assert cut["evaluated_bounds"][2] == pytest.approx([-0.09, 0.1])
+    assert cut["chamfer_m"] < 0.1 * full["chamfer_m"]
+    sub, b = export.crop_volume(vol, BOX, crop)
+    assert sub.shape == (N, N, N - 4) and b[2, 0] == pytest.approx(-0.09)
+    with pytest.raises(InputError):
+        export.crop_volume(vol, BOX, [[0.2, 0.3], [-0.1, 0.1], [-0.1, 0.1]])
