@@ -8,8 +8,12 @@ chunk is one Dr.Jit kernel launch, and every chunk reuses the same compiled kern
 
 The path-length window is ``path_range`` if given, else the reference's crop window
 (:func:`sonarsim.geometry.crop_window`) over the scene box (``box``, by default the
-bounding box of the Mitsuba scene) and the poses. Bin width w = sound_speed / (fs ·
-oversample); bin j covers [path_start + j·w, path_start + (j+1)·w).
+bounding box of the Mitsuba scene) and the poses, **aligned to the sample grid**
+(:func:`aligned_window`): path_start = min_dist − w/2, so the centre of bin j·K
+(K = oversample) is the path length c·(min_sample + j)/fs of waveform sample j, and
+decimating to bins 0, K, 2K, ... gives values at the sample times (what ``simulate``
+does). Bin width w = sound_speed / (fs · oversample); bin j covers
+[path_start + j·w, path_start + (j+1)·w) and stands for its centre.
 """
 from __future__ import annotations
 
@@ -21,9 +25,14 @@ import numpy as np
 
 from .dataset import Transients
 from .errors import InputError
-from .geometry import Poses, SceneBox, crop_window
+from .geometry import CropWindow, Poses, SceneBox, crop_window
 
 DEFAULT_BEAMS = {"tx_beam": "cone", "tx_beamwidth": 30.0, "rx_beam": "cone", "rx_beamwidth": 30.0}
+# The reference renderer (REFERENCE_SPEC §6.1): isotropic point light; a 25° perspective
+# camera aimed at a fixed point, approximated here by a 25° cone (docs/simulation.md).
+REFERENCE_PARITY_BEAMS = {"tx_beam": "isotropic", "rx_beam": "cone", "rx_beamwidth": 25.0}
+REFERENCE_RX_TARGET = (0.0, 0.0, 0.09)   # m, the reference camera's look-at point
+REFERENCE_BOUNCES = (1,)                 # its max_bounce 2 = columns 0 (empty) and 1
 BEAM_KEYS = tuple(DEFAULT_BEAMS) + ("shading_normals",)
 DEFAULT_SOUND_SPEED = 344.973      # m/s, the reference's simulated system file (REFERENCE_SPEC §1.3)
 DEFAULT_MEMORY_BUDGET = 768 * 2**20  # bytes for one chunk's histogram buffers
@@ -56,10 +65,25 @@ def scene_box(scene) -> SceneBox:
     return SceneBox(np.where(flat, lo - 5e-7, lo), np.where(flat, hi + 5e-7, hi))
 
 
+def aligned_window(crop: CropWindow, bin_width: float, oversample: int) -> PathWindow:
+    """The histogram window of a crop window whose bin centres j·K fall on the sample times.
+
+    The integrator's tent splat makes bin j stand for its centre path_start + (j + ½)·w;
+    with path_start = min_dist − w/2 the centre of bin j·oversample is
+    min_dist + j·oversample·w = c·(min_sample + j)/fs. ``crop.num_samples·oversample`` bins.
+    """
+    return PathWindow(crop.min_dist - bin_width / 2, bin_width, crop.num_samples * int(oversample))
+
+
 def path_window(scene, poses: Poses, *, fs: float = 100e3, oversample: int = 20,
                 sound_speed: float = DEFAULT_SOUND_SPEED, path_range=None,
                 box: SceneBox | None = None) -> PathWindow:
-    """The histogram window :func:`render` uses for these arguments (see the module doc)."""
+    """The histogram window :func:`render` uses for these arguments (see the module doc).
+
+    ``path_range`` (LMIN, LMAX) is used as given: path_start = LMIN, ⌈(LMAX − LMIN)/w⌉ bins.
+    Otherwise the crop window of ``box`` (default: the scene's bounding box) over ``poses``,
+    aligned to the sample grid by :func:`aligned_window`.
+    """
     _check_positive("fs", fs)
     _check_positive("sound_speed", sound_speed)
     if int(oversample) != oversample or oversample < 1:
@@ -71,7 +95,15 @@ def path_window(scene, poses: Poses, *, fs: float = 100e3, oversample: int = 20,
             raise InputError(f"path_range must be two finite lengths LMIN < LMAX, got {path_range}")
         return PathWindow(lo, width, max(1, math.ceil((hi - lo) / width - 1e-9)))
     crop = crop_window(poses, box if box is not None else scene_box(scene), sound_speed, fs)
-    return PathWindow(crop.min_dist, width, crop.num_samples * int(oversample))
+    return aligned_window(crop, width, int(oversample))
+
+
+def reference_parity_poses(poses: Poses, target=REFERENCE_RX_TARGET) -> Poses:
+    """``poses`` with every RX boresight aimed at ``target`` [3] m (TX boresights kept)."""
+    rx_dir = np.asarray(target, np.float64).reshape(1, 3) - poses.rx
+    if np.any(np.linalg.norm(rx_dir, axis=1) == 0):
+        raise InputError(f"a receiver sits on the RX target {tuple(target)}")
+    return Poses(poses.tx, poses.rx, poses.tx_boresight, rx_dir)
 
 
 def choose_chunk_size(paths_per_pose: int, bounces: int, n_bins: int,
@@ -154,8 +186,9 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
     scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
     paths_per_pose: Monte-Carlo paths per pose. bounces: histograms for bounces 1…B.
     fs (Hz), oversample, sound_speed (m/s): bin width sound_speed / (fs · oversample) m.
-    path_range: (LMIN, LMAX) round-trip metres, else the crop window of ``box`` (default:
-    the scene's bounding box) and the poses. seed: 0 ≤ seed < 2³². chunk_size: poses per
+    path_range: (LMIN, LMAX) round-trip metres (path_start = LMIN), else the crop window of
+    ``box`` (default: the scene's bounding box) and the poses, aligned so that bin centres
+    j·oversample fall on the sample times (:func:`aligned_window`). seed: 0 ≤ seed < 2³². chunk_size: poses per
     kernel launch (default from ``memory_budget`` bytes). beams: overrides of
     :data:`DEFAULT_BEAMS` ('cone' | 'isotropic' | 'piston'; full beamwidths in degrees).
     Values are the energy received from a unit-intensity TX: ∫ b_R L dω at the RX.

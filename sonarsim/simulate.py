@@ -23,6 +23,11 @@ The pipeline follows the reference (REFERENCE_SPEC §6.2), streamed over chunks 
    Ping i's noise is σ·z_i with z_i drawn from its own generator seeded by (seed, i), so
    it does not depend on the chunking or on where a run was resumed.
 
+**Amplitude model.** The waveforms are intensity-mode, as the reference's simulation: the
+energy histogram convolved with the pulse, so an echo's amplitude falls as 1/(r_T² r_R²)
+(DESIGN §4), whereas measured AirSAS waveforms are pressure, ∝ 1/(r_T r_R). The dataset
+says so in ``meta['amplitude_model'] = 'intensity'``.
+
 **Streaming and resuming.** Chunks go through :class:`sonarsim.dataset.DatasetStreamWriter`
 into ``<out>.partial``; a killed run resumes where it stopped. Without noise that is the
 output file. With noise, σ depends on all pings, so the noiseless dataset is streamed into
@@ -56,11 +61,14 @@ from . import __version__
 from .dataset import DatasetStreamWriter, TransientsLayout, inspect
 from .errors import FormatError, InputError
 from .geometry import CropWindow, Poses, crop_window
-from .render import DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, iter_render
+from .render import DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, aligned_window, iter_render
 from .scene import SceneSpec
 from .signals import (NAMED_PULSES, REFERENCE_PULSE_SAMPLES, fft_upsample, lfm, load_pulse,
                       named_pulse, noise_sigma)
 
+# Waveforms are energy histograms ⊗ pulse: amplitudes fall as 1/(r_T² r_R²) (the reference's
+# intensity mode, DESIGN §4), unlike measured pressure (∝ 1/(r_T r_R)); docs/formats.md.
+AMPLITUDE_MODEL = "intensity"
 NOISE_STREAM = 0x6E6F6973   # spawn key that separates the noise generators from other uses
 CONVOLVE_BLOCK = 128        # pings per FFT block (bounds the temporary arrays)
 PULSE_HELP = ("'lfm-20k' (30->10 kHz, 1 ms), 'lfm-10k', 'lfm-5k' (22.5->17.5 kHz), "
@@ -112,7 +120,7 @@ def simulation_window(poses: Poses, spec: SceneSpec, pulse: Pulse, sound_speed: 
     crop = crop_window(poses, spec.box, sound_speed, pulse.fs,
                        pulse_samples=min(len(pulse.samples), REFERENCE_PULSE_SAMPLES))
     width = sound_speed / (pulse.fs * oversample)
-    return crop, PathWindow(crop.min_dist - width / 2, width, crop.num_samples * oversample)
+    return crop, aligned_window(crop, width, oversample)
 
 
 def oversampled_pulse(pulse: np.ndarray, oversample: int) -> np.ndarray:
@@ -305,6 +313,7 @@ def _meta(spec: SceneSpec, s: SimulationSettings, crop: CropWindow, window: Path
             "oversample": int(s.oversample), "beams": {**DEFAULT_BEAMS, **dict(s.beams or {})},
             "path_start": window.path_start, "path_bin_width": window.bin_width,
             "crop_min_dist": crop.min_dist, "crop_max_dist": crop.max_dist,
+            "amplitude_model": AMPLITUDE_MODEL,
             "noise": "white Gaussian, sigma^2 = signal_power(noiseless) * 10^(-snr_db/10); "
                      "ping i seeded by (seed, i)",
             "generator": f"sonarsim {__version__} simulate", **s.extra_meta}

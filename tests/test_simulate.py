@@ -195,7 +195,7 @@ def test_render_cli_round_trip(tmp_path, capsys):
     poses = trajectory("cylindrical:4:1", box=spec.box)
     crop = crop_window(poses, spec.box, t.sound_speed, FS)
     assert t.transients.shape == (4, 2, crop.num_samples * 20)
-    assert t.path_start == pytest.approx(crop.min_dist)
+    assert t.path_start == pytest.approx(crop.min_dist - t.path_bin_width / 2)   # aligned
     np.testing.assert_allclose(t.tx, poses.tx)
     assert t.meta["scene"] == "sphere" and t.meta["beams"]["tx_beamwidth"] == 40.0
     assert t.transients[:, 0].sum() > 0
@@ -207,6 +207,47 @@ def test_render_cli_round_trip(tmp_path, capsys):
     assert t.path_start == 1.5 and t.n_bins == int(np.ceil(0.1 / t.path_bin_width - 1e-9))
 
 
+def test_render_and_simulate_share_the_aligned_window(tmp_path):
+    """The default render window is simulate's: a render file decimated at bins 0, K, 2K, ...
+    gives values at the dataset's sample times, and the histograms are the same bytes."""
+    from sonarsim.render import render
+    spec = load_scene("sphere")
+    poses = trajectory("cylindrical:3:1", box=spec.box)
+    ds = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "d.h5",
+                                        settings(keep_transients=True)))
+    t = render(spec.to_mitsuba(), poses, paths_per_pose=400, bounces=2, seed=5, box=spec.box,
+               progress=False)
+    assert t.path_start == ds.transients.path_start and t.n_bins == ds.transients.n_bins
+    assert t.transients.tobytes() == ds.transients.transients.tobytes()
+    np.testing.assert_allclose(t.path_lengths()[::20], ds.sample_path_lengths(), rtol=0,
+                               atol=1e-12)
+    assert ds.meta["amplitude_model"] == "intensity"
+
+
+def test_reference_parity_cli(tmp_path):
+    out = tmp_path / "d.h5"
+    code = cli_main(["simulate", "sphere", "--poses", "cylindrical:3:1", "--out", str(out),
+                     "--paths-per-pose", "300", "--reference-parity", "--no-progress"])
+    assert code == 0
+    ds = SonarDataset.read(out)
+    assert ds.meta["bounce_set"] == [1] and ds.meta["bounces"] == 1
+    assert ds.meta["reference_parity"] is True and ds.meta["rx_target"] == [0.0, 0.0, 0.09]
+    beams = ds.meta["beams"]
+    assert beams["tx_beam"] == "isotropic" and (beams["rx_beam"], beams["rx_beamwidth"]) == ("cone", 25.0)
+    aim = np.array([0.0, 0.0, 0.09]) - ds.rx
+    np.testing.assert_allclose(ds.receiver_boresight, aim / np.linalg.norm(aim, axis=1)[:, None],
+                               atol=1e-12)
+    spec = load_scene("sphere")
+    np.testing.assert_allclose(ds.boresight, trajectory("cylindrical:3:1", box=spec.box).tx_boresight)
+
+    t_out = tmp_path / "t.h5"
+    assert cli_main(["render", "sphere", "--poses", "cylindrical:3:1", "--out", str(t_out),
+                     "--paths-per-pose", "300", "--reference-parity", "--no-progress"]) == 0
+    t = Transients.read(t_out)
+    assert t.n_bounces == 1 and t.meta["reference_parity"] is True
+    assert t.meta["beams"]["tx_beam"] == "isotropic"
+
+
 @pytest.mark.parametrize("argv, message", [
     (["render", "nosuch", "--poses", "sparse:4"], "nosuch"),
     (["render", "sphere", "--poses", "zigzag"], "trajectory"),
@@ -214,6 +255,12 @@ def test_render_cli_round_trip(tmp_path, capsys):
     (["simulate", "sphere", "--poses", "cylindrical:2:1", "--bounce-set", "x"], "bounce-set"),
     (["simulate", "sphere", "--poses", "cylindrical:2:1", "--isotropic", "--tx-beam", "cone"],
      "isotropic"),
+    (["simulate", "sphere", "--poses", "cylindrical:2:1", "--reference-parity",
+      "--rx-beamwidth", "30"], "--rx-beamwidth"),
+    (["simulate", "sphere", "--poses", "cylindrical:2:1", "--reference-parity",
+      "--bounce-set", "1,2"], "--bounce-set"),
+    (["render", "sphere", "--poses", "cylindrical:2:1", "--reference-parity", "--isotropic"],
+     "--isotropic"),
 ])
 def test_cli_errors_are_one_line(tmp_path, capsys, argv, message):
     code = cli_main(argv + ["--out", str(tmp_path / "x.h5"), "--no-progress"])

@@ -181,6 +181,54 @@ def test_integrating_sphere_bounces_and_tent_binning(mi):
     assert stats == {"intersect": 1000 * bounces, "shadow": 1000 * bounces}
 
 
+def _numpy_mean_chord(radius, n, rng):
+    """Independent check of 4R/3: mean chord of a sphere along cosine-distributed directions.
+
+    Points uniform on the sphere, directions cosine-weighted about the inward normal (Malley:
+    uniform disk lifted to the hemisphere), chord = the far root of |p + t d − c| = R.
+    """
+    p = rng.standard_normal((n, 3))
+    p *= radius / np.linalg.norm(p, axis=1, keepdims=True)        # centre at the origin
+    inward = -p / radius
+    helper = np.where(np.abs(inward[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(inward, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(inward, e1)
+    r, phi = np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+    d = (r * np.cos(phi))[:, None] * e1 + (r * np.sin(phi))[:, None] * e2 \
+        + np.sqrt(1 - r * r)[:, None] * inward
+    b = np.einsum("ij,ij->i", p, d)                                 # |p + t d|² = R²
+    return (-b + np.sqrt(b * b - (np.einsum("ij,ij->i", p, p) - radius ** 2))).mean()
+
+
+def test_integrating_sphere_mean_path_lengths(mi):
+    """Mean path length of bounce k inside a hollow sphere: R + (k − 1)·4R/3 + R.
+
+    TX and RX at the centre: the first and the last segment are R. A chord leaving the wall
+    at angle θ from the inward normal is 2R cosθ; cosine-weighted sampling gives
+    E[cosθ] = 2/3 and E[cos²θ] = 1/2, so a chord has mean 4R/3 and variance 2R²/9. Every
+    path carries the same energy and the tent splat preserves means, so the energy-weighted
+    mean of the bin centres is the mean path length. A small R keeps the standard error
+    (∝ R) far below the bias of continuing paths from an origin offset along the normal
+    (Mitsuba's spawn_ray, ~1e-4 m per inner segment whatever R), which this test detects.
+    """
+    radius, paths = 0.01, 1_000_000
+    chord = 4 * radius / 3
+    assert _numpy_mean_chord(radius, 400_000, np.random.default_rng(1)) == pytest.approx(
+        chord, abs=5 * math.sqrt(2 / 9) * radius / math.sqrt(400_000))
+    centre = [0.01, -0.02, 0.03]
+    scene = mi.load_dict({"type": "scene", "shell": {
+        "type": "sphere", "radius": radius, "center": centre, "bsdf": diffuse(0.6)}})
+    integ = integrator(mi, bounces=3, tx="isotropic", rx="isotropic")
+    n_bins = int(6 * radius / W) + 10           # longest path: 2R per bounce
+    hist = render(integ, scene, centre, centre, DOWN, DOWN, 0.0, n_bins, paths)[0]
+    mean = (hist * centres(0.0, n_bins)).sum(axis=1) / hist.sum(axis=1)
+    for k in (1, 2, 3):
+        expected = 2 * radius + (k - 1) * chord
+        se = math.sqrt((k - 1) * 2 / 9) * radius / math.sqrt(paths)
+        assert abs(mean[k - 1] - expected) < 5 * se + 1e-7, (k, mean[k - 1] - expected, se)
+
+
 # ------------------------------------------------------------- closed form: large plane
 def test_plane_first_return_and_total(mi):
     rho, h = 0.7, 1.0
@@ -525,7 +573,10 @@ def test_driver_returns_transients(mi, box_on_ground):
     crop = crop_window(poses, SIM_BOX, C, FS)
     assert isinstance(t, Transients)
     assert t.transients.shape == (3, 2, crop.num_samples * 20)
-    assert t.path_start == pytest.approx(crop.min_dist)
+    # aligned window: bins 0, K, 2K, ... are centred on the sample times
+    assert t.path_start == pytest.approx(crop.min_dist - W / 2)
+    np.testing.assert_allclose(t.path_lengths()[::20], crop.path_lengths(C, FS),
+                               rtol=0, atol=1e-12)
     assert t.path_bin_width == pytest.approx(W)
     assert t.meta["paths_per_pose"] == 2000 and t.transients[:, 0].sum() > 0
     np.testing.assert_array_equal(t.tx, poses.tx)
@@ -562,7 +613,7 @@ def test_driver_default_window_is_the_scene_box(mi):
     poses = Poses.pointing_at([[0.0, 0.0, 0.5]], [[0.02, 0.0, 0.5]], [0.0, 0.0, 0.0])
     t = render_poses(scene, poses, paths_per_pose=5000, bounces=1, progress=False)
     crop = crop_window(poses, SceneBox((-0.3, -0.3, -1e-6), (0.3, 0.3, 1e-6)), C, FS)
-    assert t.path_start == pytest.approx(crop.min_dist)
+    assert t.path_start == pytest.approx(crop.min_dist - W / 2)
     assert t.n_bins == crop.num_samples * 20
     assert [x1 for _, x1 in t.meta["window_box"][:2]] == pytest.approx([0.3, 0.3])
     assert t.transients.sum() > 0

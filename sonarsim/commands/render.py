@@ -26,17 +26,19 @@ def add_scene_and_pose_arguments(parser: argparse.ArgumentParser, out_help: str)
     parser.add_argument("--out", required=True, type=Path, metavar="FILE.h5", help=out_help)
 
 
-def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_default: int | None = 3
-                         ) -> None:
+PARITY_HELP = ("match the reference simulation (REFERENCE_SPEC §6): isotropic TX, RX cone 25° "
+               "aimed at (0, 0, 0.09) m, bounce 1 only; conflicts with the beam options "
+               "(differences that remain: docs/simulation.md)")
+
+
+def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_help: str) -> None:
     """Options shared by ``render`` and ``simulate``: sampling, window, physics, beams."""
     from ..render import DEFAULT_SOUND_SPEED
     g = parser.add_argument_group("rendering")
     g.add_argument("--paths-per-pose", type=int, default=10_000, metavar="N",
                    help="Monte-Carlo paths per pose (default 10000)")
-    g.add_argument("--bounces", type=int, default=bounces_default, metavar="B",
-                   help="render bounces 1..B" + (f" (default {bounces_default})"
-                                                 if bounces_default else
-                                                 " (default: the largest of --bounce-set, else 3)"))
+    g.add_argument("--bounces", type=int, default=None, metavar="B",
+                   help=f"render bounces 1..B ({bounces_help})")
     g.add_argument("--oversample", type=int, default=20, metavar="K",
                    help="path-length bins per sample period (default 20, as the reference)")
     g.add_argument("--sound-speed", type=float, default=DEFAULT_SOUND_SPEED, metavar="C",
@@ -59,10 +61,18 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_default: in
                             "half-power width)")
     b.add_argument("--isotropic", action="store_true",
                    help="isotropic TX and RX (no beam pattern)")
+    b.add_argument("--reference-parity", action="store_true", help=PARITY_HELP)
 
 
 def beams_from_args(args: argparse.Namespace) -> dict:
     """The ``beams`` mapping of :func:`sonarsim.render.render` from the beam options."""
+    if args.reference_parity:
+        from ..render import REFERENCE_PARITY_BEAMS
+        for option in ("isotropic", "tx_beam", "tx_beamwidth", "rx_beam", "rx_beamwidth"):
+            if getattr(args, option) not in (None, False):
+                raise InputError(f"--reference-parity sets the beams; it contradicts "
+                                 f"--{option.replace('_', '-')}")
+        return dict(REFERENCE_PARITY_BEAMS)
     beams = {}
     for end in ("tx", "rx"):
         kind = getattr(args, f"{end}_beam")
@@ -104,9 +114,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_and_pose_arguments(parser, "output transients file (.h5)")
     parser.add_argument("--path-range", type=float, nargs=2, default=None,
                         metavar=("LMIN", "LMAX"),
-                        help="round-trip path-length window in m (default: the reference's "
-                             "crop window of the scene box for these poses)")
-    add_render_arguments(parser)
+                        help="round-trip path-length window in m, used as given (default: "
+                             "the reference's crop window of the scene box for these poses, "
+                             "shifted by half a bin so that bins 0, K, 2K, ... are centred on "
+                             "the sample times)")
+    add_render_arguments(parser, bounces_help="default 3; 1 with --reference-parity")
+
+
+def parity_poses(args: argparse.Namespace, poses):
+    """``poses``, with RX boresights aimed at the reference's target under --reference-parity."""
+    if not args.reference_parity:
+        return poses
+    from ..render import reference_parity_poses
+    return reference_parity_poses(poses)
+
+
+def parity_meta(args: argparse.Namespace) -> dict:
+    """Free-form metadata recording --reference-parity (empty without it)."""
+    if not args.reference_parity:
+        return {}
+    from ..render import REFERENCE_RX_TARGET
+    return {"reference_parity": True, "rx_target": list(REFERENCE_RX_TARGET)}
 
 
 def _check_memory(scene, poses, args, box) -> None:
@@ -134,8 +162,10 @@ def run(args: argparse.Namespace) -> int:
     from ..simulate import dr_threads
 
     check_common(args)
+    if args.bounces is None:
+        args.bounces = 1 if args.reference_parity else 3
     spec = load_scene(args.scene)
-    poses = trajectory(args.poses, box=spec.box)
+    poses = parity_poses(args, trajectory(args.poses, box=spec.box))
     beams = beams_from_args(args)
     scene = spec.to_mitsuba()
     _check_memory(scene, poses, args, spec.box)
@@ -145,7 +175,8 @@ def run(args: argparse.Namespace) -> int:
                             sound_speed=args.sound_speed, path_range=args.path_range,
                             seed=args.seed, chunk_size=args.chunk_size, beams=beams,
                             box=spec.box, progress=not args.no_progress)
-    transients.meta.update(scene=spec.name, scene_source=spec.source, poses=str(args.poses))
+    transients.meta.update(scene=spec.name, scene_source=spec.source, poses=str(args.poses),
+                           **parity_meta(args))
     transients.write(args.out)
     size = transients.transients.nbytes
     print(f"wrote {args.out}: {transients.n_pings} pings x {transients.n_bounces} bounces x "

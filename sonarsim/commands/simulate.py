@@ -11,13 +11,20 @@ import argparse
 import sys
 
 from ..errors import InputError
-from .render import add_render_arguments, add_scene_and_pose_arguments, beams_from_args, check_common
+from .render import (add_render_arguments, add_scene_and_pose_arguments, beams_from_args,
+                     check_common, parity_meta, parity_poses)
 
 HELP = "Simulate a sonar dataset (waveforms, pulse, geometry, ground truth) of a scene."
+EPILOG = ("Amplitude model: the waveforms are intensity-mode, as the reference's simulation: "
+          "the energy histogram over path length convolved with the pulse, so an echo's "
+          "amplitude falls as 1/(r_T^2 r_R^2). Real AirSAS waveforms are pressure, "
+          "~1/(r_T r_R). The dataset records meta amplitude_model = 'intensity' "
+          "(docs/simulation.md).")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..simulate import PULSE_HELP
+    parser.epilog = EPILOG
     add_scene_and_pose_arguments(parser, "output sonar dataset (.h5)")
     s = parser.add_argument_group("signal")
     s.add_argument("--pulse", default="lfm-20k", metavar="PULSE",
@@ -36,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="also store the rendered transients in the dataset")
     s.add_argument("--restart", action="store_true",
                    help="discard the partial output of an interrupted run instead of resuming it")
-    add_render_arguments(parser, bounces_default=None)
+    add_render_arguments(parser, bounces_help="default: the largest of --bounce-set, "
+                                               "else 3; 1 with --reference-parity")
 
 
 def parse_bounce_set(text: str | None) -> tuple[int, ...] | None:
@@ -59,18 +67,25 @@ def run(args: argparse.Namespace) -> int:
 
     check_common(args)
     bounce_set = parse_bounce_set(args.bounce_set)
+    beams = beams_from_args(args)
+    if args.reference_parity:
+        from ..render import REFERENCE_BOUNCES
+        if bounce_set not in (None, REFERENCE_BOUNCES):
+            raise InputError(f"--reference-parity sums bounce 1 only; it contradicts "
+                             f"--bounce-set {args.bounce_set}")
+        bounce_set = REFERENCE_BOUNCES
     bounces = args.bounces or (max(bounce_set) if bounce_set else 3)
     if args.pulse_samples is not None and args.pulse_samples < 2:
         raise InputError(f"--pulse-samples must be >= 2, got {args.pulse_samples}")
     spec = load_scene(args.scene)
-    poses = trajectory(args.poses, box=spec.box)
+    poses = parity_poses(args, trajectory(args.poses, box=spec.box))
     settings = SimulationSettings(
         pulse=make_pulse(args.pulse, args.fs, args.pulse_samples), snr_db=args.snr_db,
         paths_per_pose=args.paths_per_pose, bounces=bounces, bounce_set=bounce_set,
         oversample=args.oversample, sound_speed=args.sound_speed, seed=args.seed,
-        beams=beams_from_args(args), keep_transients=args.keep_transients,
+        beams=beams, keep_transients=args.keep_transients,
         chunk_size=args.chunk_size, threads=args.threads,
-        extra_meta={"poses": str(args.poses)})
+        extra_meta={"poses": str(args.poses), **parity_meta(args)})
     out = simulate(spec, poses, args.out, settings, resume=not args.restart,
                    progress=not args.no_progress)
     noise = "noiseless" if args.snr_db is None else f"SNR {args.snr_db:g} dB"

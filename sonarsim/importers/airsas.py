@@ -457,6 +457,7 @@ def import_airsas(scan_dir: str | Path, background_dir: str | Path | None = None
         "n_flights": int(len(flights)),
         "first_flight": int(flights[0]), "last_flight": int(flights[-1]),
         "sound_speed_formula": "331.4 + 0.6 * mean(temperatures)",
+        "amplitude_model": "pressure",   # microphone voltage; simulate writes "intensity"
     }
     return SonarDataset(
         waveforms=waveforms, tx=poses.tx, rx=poses.rx, boresight=poses.tx_boresight,
