@@ -49,19 +49,26 @@ from .grid import Grid
 class GDSettings:
     """Settings of a gradient-descent run.
 
-    Defaults are the reference's simulated-scene values where they exist (REFERENCE_SPEC
-    §4.2–§4.5: 5 pings per step, 110 bins per ping, scale factor 10, s_occ 500, sparsity 1
-    after iteration 500, smoothness/phase/TV off, Lambertian on). The learning rate is not
-    the reference's 1e-4: the voxel values here are in different units (the model is a
-    plain sum over ``n_rays`` rays of targets scaled to max ``scale_factor``), and a decaying
-    rate (1e-2 → 1e-3) reached a lower residual than any constant rate on the point-target
-    tests. Resuming reproduces the run only with the same ``iterations`` (the decay depends
-    on it).
+    Defaults (docs/reconstruction.md, "Gradient descent", has the measurements behind them):
+    start from the backprojection scaled by its least-squares factor through the linear
+    model (``init='bp'``); the reference's forward model (Lambertian factor, occlusion with
+    s_occ 500) without priors; and a learning rate *relative* to the voxel scale
+    max |scaled BP| (``lr_units='relative'``): Adam moves every voxel by about ``lr`` × that
+    scale per step whatever the gradient's size, so an absolute rate means nothing until the
+    data's units are fixed. The rate decays exponentially from ``lr`` to ``lr_final``;
+    resuming reproduces a run only with the same ``iterations``. For point-like scenes the
+    linear model (``lambertian=False, occlusion_scale=0``) fits better.
+
+    Sampling follows the reference's simulated-scene script (REFERENCE_SPEC §4.2–§4.5: 5
+    pings per step, 110 bins per ping, targets scaled to max 10). ``preset='sim'`` or
+    ``'airsas'`` restores the reference's priors (sparsity after iteration 500, …) and its
+    tiny random initialisation.
     """
 
-    iterations: int = 2000
-    lr: float = 1e-2
-    lr_final: float | None = 1e-3         # exponential decay from lr to lr_final (None = constant)
+    iterations: int = 1000
+    lr: float = 2e-2
+    lr_final: float | None = 2e-3         # exponential decay from lr to lr_final (None = constant)
+    lr_units: str = "relative"            # 'relative': × voxel scale (max |scaled BP|) | 'absolute'
     adam_epsilon: float = 1e-8
     pings_per_iteration: int = 5          # reference accum_grad
     bins_per_ping: int = 110              # reference max_weights (sim)
@@ -72,14 +79,14 @@ class GDSettings:
     data: str = "matched"                 # 'matched' | 'analytic'
     lambertian: bool = True
     occlusion_scale: float = 500.0
-    sparsity: float = 1.0
+    sparsity: float = 0.0
     smoothness: float = 0.0
     phase: float = 0.0
     tv: float = 0.0
     smooth_delta: float = 1.0
     reg_start: int = 500
-    init_scale: float = 1e-8              # std of the random complex initial voxels
-    init: str = "random"                  # 'random' | 'bp' (scaled backprojection)
+    init_scale: float = 1e-8              # std of the random complex initial voxels (absolute)
+    init: str = "bp"                      # 'bp' (scaled backprojection) | 'random'
     ray_jitter: bool = True               # random roll of the ray pattern per ping
     seed: int = 0
 
@@ -97,6 +104,8 @@ class GDSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"{name}: must be a finite number >= 0, got {v}")
+        if self.lr_units not in ("relative", "absolute"):
+            raise InputError(f"lr_units: choose 'relative' or 'absolute', got {self.lr_units!r}")
         if self.init not in ("random", "bp"):
             raise InputError(f"init: choose 'random' or 'bp', got {self.init!r}")
         if self.data not in ("matched", "analytic"):
@@ -107,16 +116,19 @@ class GDSettings:
 
 # The reference's per-scene settings (REFERENCE_SPEC §4.2–§4.5, §4.8) that carry over to
 # this implementation (its lr, iteration count and ray count do not: see GDSettings).
+# On simulated scenes they fit worse than the defaults (docs/reconstruction.md).
 PRESETS = {
-    "sim": dict(bins_per_ping=110, scale_factor=10.0, occlusion_scale=500.0, sparsity=1.0,
-                smoothness=0.0, phase=0.0, reg_start=500),
-    "airsas": dict(bins_per_ping=200, scale_factor=30.0, occlusion_scale=1000.0, sparsity=10.0,
-                   smoothness=50.0, phase=0.1, reg_start=500, beamwidth_deg=30.0),
+    "sim": dict(bins_per_ping=110, scale_factor=10.0, lambertian=True, occlusion_scale=500.0,
+                sparsity=1.0, smoothness=0.0, phase=0.0, reg_start=500, init="random"),
+    "airsas": dict(bins_per_ping=200, scale_factor=30.0, lambertian=True, occlusion_scale=1000.0,
+                   sparsity=10.0, smoothness=50.0, phase=0.1, reg_start=500, beamwidth_deg=30.0,
+                   init="random"),
 }
 
 
 def settings_for(preset: str | None = None, **overrides) -> GDSettings:
-    """GDSettings from a named preset ('sim' = the defaults, 'airsas') and explicit overrides."""
+    """GDSettings from a named preset ('sim', 'airsas': the reference's values) and explicit
+    overrides (None = the defaults)."""
     if preset is not None and preset not in PRESETS:
         raise InputError(f"preset: choose one of {', '.join(PRESETS)}, got {preset!r}")
     values = dict(PRESETS.get(preset, {}))
@@ -260,7 +272,7 @@ class _BoundField:
         return self.vf.field(self.opt["re"], self.opt["im"])
 
 
-def solve(dataset, grid: Grid, *, iterations: int = 2000, seed: int = 0,
+def solve(dataset, grid: Grid, *, iterations: int = 1000, seed: int = 0,
           checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 500,
           resume: bool = False, progress: bool = True, callback=None, preset: str | None = None,
           **overrides):
@@ -273,20 +285,23 @@ def solve(dataset, grid: Grid, *, iterations: int = 2000, seed: int = 0,
     """
     from sonarsim.dataset import Volume
     settings = settings_for(preset, iterations=iterations, seed=seed, **overrides)
-    volume, history = fit(dataset, grid, settings, checkpoint=checkpoint,
-                          checkpoint_every=checkpoint_every, resume=resume, progress=progress,
-                          callback=callback)
+    volume, history, info = fit(dataset, grid, settings, checkpoint=checkpoint,
+                                checkpoint_every=checkpoint_every, resume=resume,
+                                progress=progress, callback=callback)
     params = {k: v for k, v in asdict(settings).items()}
     params["preset"] = preset or "none"
     params["final_loss"] = float(history[-1]["loss"]) if history else float("nan")
     params["n_pings"] = int(len(dataset.waveforms))
+    params.update(info)
     return Volume(volume=volume, bounds=np.asarray(grid.bounds, dtype=np.float64), method="gd",
                   params=params)
 
 
 def fit(dataset, grid: Grid, settings: GDSettings, *, checkpoint=None, checkpoint_every=500,
         resume=False, progress=True, callback=None):
-    """The optimisation loop; returns (volume complex64 [nx, ny, nz], history list of dicts)."""
+    """The optimisation loop; returns (volume complex64 [nx, ny, nz], history list of dicts,
+    info dict: ``voxel_scale`` (max |scaled BP|, 1 with absolute lr and random init) and
+    ``lr_absolute`` (the initial Adam learning rate in voxel units))."""
     import drjit as dr
     from drjit.opt import Adam
     if not isinstance(grid, Grid):
@@ -298,10 +313,27 @@ def fit(dataset, grid: Grid, settings: GDSettings, *, checkpoint=None, checkpoin
     first, last = reachable_bins(dataset, grid, speeds)
     rng = np.random.default_rng(settings.seed)
     init = (rng.standard_normal((2, grid.size)) * settings.init_scale).astype(np.float32)
-    if settings.init == "bp":
+    scale = 1.0
+    if settings.init == "bp" or settings.lr_units == "relative":
         x0 = _scaled_backprojection(dataset, grid, tgt, first, last, speeds, settings)
-        init += np.stack([x0.real.ravel(), x0.imag.ravel()]).astype(np.float32)
-    opt = Adam(lr=settings.lr, epsilon=settings.adam_epsilon)
+        peak = float(np.abs(x0).max())
+        if not peak > 0:
+            # No ray of the fitting batch met a non-zero voxel (e.g. a thin 2-D slab and few
+            # rays): no least-squares scale. Fall back to the value a voxel needs to give the
+            # target peak if every ray saw it, and start from tiny random values.
+            import warnings
+            warnings.warn("gradient descent: the backprojection could not be scaled through the "
+                          "model (no ray met it); starting from random values with voxel scale "
+                          "scale_factor/n_rays", RuntimeWarning, stacklevel=2)
+            peak = settings.scale_factor / settings.n_rays
+        if settings.lr_units == "relative":
+            scale = peak
+        if settings.init == "bp":
+            init += np.stack([x0.real.ravel(), x0.imag.ravel()]).astype(np.float32)
+    lr0 = settings.lr * scale
+    lr1 = None if settings.lr_final is None else settings.lr_final * scale
+    info = {"voxel_scale": scale, "lr_absolute": lr0}
+    opt = Adam(lr=lr0, epsilon=settings.adam_epsilon)
     opt["re"] = m.Float(init[0])
     opt["im"] = m.Float(init[1])
     start = 0
@@ -336,9 +368,9 @@ def fit(dataset, grid: Grid, settings: GDSettings, *, checkpoint=None, checkpoin
                             grid, it >= settings.reg_start, u_vec)
         loss = sum(terms.values())
         dr.backward(loss)
-        if settings.lr_final is not None:
+        if lr1 is not None:
             frac = it / max(settings.iterations - 1, 1)
-            opt.set_learning_rate(float(settings.lr * (settings.lr_final / settings.lr) ** frac))
+            opt.set_learning_rate(float(lr0 * (lr1 / lr0) ** frac))
         opt.step()
         record = {k: float(v[0]) for k, v in terms.items()}
         record["loss"] = float(loss[0])
@@ -353,7 +385,7 @@ def fit(dataset, grid: Grid, settings: GDSettings, *, checkpoint=None, checkpoin
             _save_checkpoint(checkpoint, opt, rng, it + 1, history, grid, settings)
     bar.close()
     vol = (np.asarray(opt["re"]) + 1j * np.asarray(opt["im"])).astype(np.complex64)
-    return vol.reshape(grid.shape), history
+    return vol.reshape(grid.shape), history, info
 
 
 # ---------------------------------------------------------------------------------------
