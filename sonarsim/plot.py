@@ -10,10 +10,11 @@
   ``complex_exr``).
 - ``pulse.png``: the pulse against time and its spectrum in dB.
 - ``trajectory.png``: TX and RX positions in 3-D with the scene box and a few boresights.
+- for a dataset that keeps its transients, the pictures of :mod:`sonarsim.plot_transients`.
 
 PNG echo images of more than ``MAX_PNG_ROWS`` pings show the maximum over groups of
-consecutive pings (the axis stays in ping index). Horizontal axes of the echo images are the **one-way range c·t/2** (metres), with the
-round-trip path c·t on the top axis; t = (start_sample + k)/fs is the time after transmission.
+consecutive pings (the axis stays in ping index). Horizontal axes of the echo images are the
+**one-way range c·t/2** (metres), with the round-trip path c·t on the top axis; t = (start_sample + k)/fs is the time after transmission.
 In the EXR files row i is ping i and column k is sample k (its time is in the header).
 """
 from __future__ import annotations
@@ -74,7 +75,7 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], comments: str =
     return path
 
 
-def _save_figure(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
@@ -88,14 +89,38 @@ def _save_figure(fig, path: Path) -> Path:
     return path
 
 
-def to_db(magnitude: np.ndarray, dynamic_range_db: float) -> np.ndarray:
-    """20·log10(magnitude / max) clipped to [−dynamic_range_db, 0] (float32)."""
+def to_db(magnitude: np.ndarray, dynamic_range_db: float, *, power: bool = False,
+          reference: float | None = None) -> np.ndarray:
+    """20·log10(magnitude / reference) clipped to [−dynamic_range_db, 0] (float32).
+
+    ``power=True`` for energies/intensities: 10·log10 instead. ``reference`` defaults to
+    the maximum of ``magnitude``.
+    """
     mag = np.asarray(magnitude, dtype=np.float32)
-    peak = float(mag.max()) if mag.size else 0.0
-    if peak <= 0:
+    factor = 10.0 if power else 20.0
+    peak = reference if reference is not None else (float(mag.max()) if mag.size else 0.0)
+    if not peak > 0:
         return np.full(mag.shape, -dynamic_range_db, dtype=np.float32)
-    floor = peak * 10.0 ** (-dynamic_range_db / 20.0)
-    return (20.0 * np.log10(np.maximum(mag, floor) / peak)).astype(np.float32)
+    floor = peak * 10.0 ** (-dynamic_range_db / factor)
+    db = factor * np.log10(np.maximum(mag, floor) / peak)
+    return np.minimum(db, 0.0).astype(np.float32)
+
+
+def ping_group(n_pings: int, max_rows: int = MAX_PNG_ROWS) -> int:
+    """Consecutive pings per PNG row so that at most ``max_rows`` rows remain (>= 1)."""
+    return max(1, -(-n_pings // max(1, min(n_pings, max_rows))))
+
+
+def max_pool_rows(rows: np.ndarray, group: int) -> np.ndarray:
+    """Maximum over groups of ``group`` consecutive rows: [N, ...] -> [ceil(N/group), ...].
+
+    The last group may be shorter. Works on strided views without copying them.
+    """
+    full = len(rows) // group * group
+    parts = [rows[:full].reshape(-1, group, *rows.shape[1:]).max(axis=1)]
+    if full < len(rows):
+        parts.append(rows[full:].max(axis=0, keepdims=True))
+    return np.concatenate(parts)
 
 
 def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PNG_ROWS,
@@ -108,7 +133,7 @@ def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PN
     matched-filter magnitude; with ``keep_complex`` also ``mf_re``/``mf_im`` [N, T].
     """
     n, t = waveforms.shape
-    group = -(-n // max(1, min(n, max_rows)))
+    group = ping_group(n, max_rows)
     rows = -(-n // group)
     chunk = group * max(1, _MF_CHUNK // group)
     pulse = np.asarray(pulse, dtype=np.float64)[:t]
@@ -118,20 +143,14 @@ def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PN
         out["mf_re"] = np.empty((n, t), np.float32)
         out["mf_im"] = np.empty((n, t), np.float32)
 
-    def pool(block: np.ndarray) -> np.ndarray:
-        pad = -len(block) % group
-        if pad:
-            block = np.concatenate([block, np.zeros((pad, t), block.dtype)])
-        return block.reshape(-1, group, t).max(axis=1)
-
     for start in range(0, n, chunk):
         block = waveforms[start:start + chunk].astype(np.float64)
         r0, r1 = start // group, -(-(start + len(block)) // group)
-        out["raw_rows"][r0:r1] = pool(np.abs(signals.analytic(block)))
+        out["raw_rows"][r0:r1] = max_pool_rows(np.abs(signals.analytic(block)), group)
         mf = signals.matched_filter(block, pulse)
         mag = np.abs(mf).astype(np.float32)
         out["mf"][start:start + len(block)] = mag
-        out["mf_rows"][r0:r1] = pool(mag)
+        out["mf_rows"][r0:r1] = max_pool_rows(mag, group)
         if keep_complex:
             out["mf_re"][start:start + len(block)] = mf.real
             out["mf_im"][start:start + len(block)] = mf.imag
@@ -246,12 +265,18 @@ def default_box(ds) -> "geometry.SceneBox":
 
 
 def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = None,
-                 dynamic_range_db: float = 60.0, complex_exr: bool = False) -> list[Path]:
+                 dynamic_range_db: float = 60.0, complex_exr: bool = False,
+                 profile_pings=None) -> list[Path]:
     """Write the echo images, pulse and trajectory pictures of ``ds`` into ``out_dir``.
 
     Returns the written paths. ``dynamic_range_db`` (> 0) sets the PNG colour range;
     ``complex_exr`` adds the matched filter's real and imaginary parts to ``echo_mf.exr``.
+    A dataset that keeps its transients also gets the pictures of
+    :func:`sonarsim.plot_transients.plot_transients` (``profile_pings`` passed on).
     """
+    if getattr(ds, "transients", None) is not None:
+        from .plot_transients import check_profile_pings
+        check_profile_pings(profile_pings, ds.transients.n_pings)
     if not (np.isfinite(dynamic_range_db) and dynamic_range_db > 0):
         raise InputError(f"dynamic range must be > 0 dB, got {dynamic_range_db}")
     out = Path(out_dir)
@@ -265,13 +290,13 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
     images = echo_images(waveforms, ds.pulse, keep_complex=complex_exr)
     group = images["group"]
     written = [
-        _save_figure(_echo_figure(to_db(images.pop("raw_rows"), dynamic_range_db), ds,
-                                  "raw waveforms: envelope", dynamic_range_db, group),
-                     out / "echo_raw.png"),
+        save_figure(_echo_figure(to_db(images.pop("raw_rows"), dynamic_range_db), ds,
+                                 "raw waveforms: envelope", dynamic_range_db, group),
+                    out / "echo_raw.png"),
         write_exr(out / "echo_raw.exr", {"Y": waveforms}, f"raw waveforms; {axis_note}"),
-        _save_figure(_echo_figure(to_db(images.pop("mf_rows"), dynamic_range_db), ds,
-                                  "matched-filtered analytic signal", dynamic_range_db, group),
-                     out / "echo_mf.png"),
+        save_figure(_echo_figure(to_db(images.pop("mf_rows"), dynamic_range_db), ds,
+                                 "matched-filtered analytic signal", dynamic_range_db, group),
+                    out / "echo_mf.png"),
     ]
     channels = {"Y": images.pop("mf")}
     if complex_exr:
@@ -282,6 +307,10 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
                              + f"); {axis_note}"))
     del images, channels
 
-    written.append(_save_figure(_pulse_figure(ds.pulse, ds.fs), out / "pulse.png"))
-    written.append(_save_figure(_trajectory_figure(ds, box), out / "trajectory.png"))
+    written.append(save_figure(_pulse_figure(ds.pulse, ds.fs), out / "pulse.png"))
+    written.append(save_figure(_trajectory_figure(ds, box), out / "trajectory.png"))
+    if getattr(ds, "transients", None) is not None:
+        from .plot_transients import plot_transients
+        written += plot_transients(ds.transients, out, dynamic_range_db=dynamic_range_db,
+                                   pings=profile_pings)
     return written
