@@ -14,7 +14,8 @@
 
 PNG echo images of more than ``MAX_PNG_ROWS`` pings show the maximum over groups of
 consecutive pings (the axis stays in ping index). Horizontal axes of the echo images are the
-**one-way range c·t/2** (metres), with the round-trip path c·t on the top axis; t = (start_sample + k)/fs is the time after transmission.
+**one-way range c·t/2** (metres), with the round-trip path c·t on the top axis;
+t = (start_sample + k)/fs is the time after transmission.
 In the EXR files row i is ping i and column k is sample k (its time is in the header).
 """
 from __future__ import annotations

@@ -77,8 +77,12 @@ def _time_axis(ax, tr: Transients) -> None:
     top.set_xlabel("time after transmission [ms]", fontsize=8)
 
 
+def _panel_columns(n_panels: int) -> int:
+    return 2 if n_panels == 4 else min(n_panels, _MAX_PANEL_COLUMNS)
+
+
 def _panel_grid(fig, n_panels: int):
-    cols = min(n_panels, _MAX_PANEL_COLUMNS)
+    cols = _panel_columns(n_panels)
     rows = -(-n_panels // cols)
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
     for ax in axes[n_panels:]:
@@ -97,8 +101,8 @@ def _image_figure(tr: Transients, per_bounce: np.ndarray, dynamic_range_db: floa
     del pooled
     total = per_bounce.sum()
     share = per_bounce / total if total > 0 else per_bounce
-    cols = min(tr.n_bounces, _MAX_PANEL_COLUMNS)
-    fig = Figure(figsize=(4.5 * cols + 1.0, 4.5 * -(-tr.n_bounces // cols)),
+    cols = _panel_columns(tr.n_bounces)
+    fig = Figure(figsize=(4.5 * cols + 1.0, 4.5 * -(-tr.n_bounces // cols) + 0.4),
                  layout="constrained")  # keeps the suptitle clear of the top time axes
     extent = (tr.path_start, tr.path_end, image_db.shape[1] * group - 0.5, -0.5)
     panels = _panel_grid(fig, tr.n_bounces)
@@ -156,8 +160,8 @@ def _profiles_figure(tr: Transients, pings: np.ndarray, dynamic_range_db: float)
 
     reference = float(tr.transients.max())
     paths = tr.path_lengths()
-    cols = min(len(pings), _MAX_PANEL_COLUMNS)
-    fig = Figure(figsize=(4.5 * cols, 3.5 * -(-len(pings) // cols)))
+    cols = _panel_columns(len(pings))
+    fig = Figure(figsize=(5.0 * cols, 3.5 * -(-len(pings) // cols)), layout="constrained")
     panels = _panel_grid(fig, len(pings))
     for ping, ax in zip(pings, panels):
         for b in range(tr.n_bounces):
@@ -170,7 +174,6 @@ def _profiles_figure(tr: Transients, pings: np.ndarray, dynamic_range_db: float)
         ax.grid(True, alpha=0.3)
         _time_axis(ax, tr)
     panels[0].legend(fontsize=8)
-    fig.tight_layout()
     return fig
 
 

@@ -89,3 +89,109 @@ def test_png_rows_are_max_pooled_over_ping_groups(dataset):
     for r, rows in enumerate((slice(0, 3), slice(3, 6), slice(6, 8))):
         np.testing.assert_array_equal(pooled["mf_rows"][r], full["mf"][rows].max(axis=0))
         np.testing.assert_array_equal(pooled["raw_rows"][r], full["raw_rows"][rows].max(axis=0))
+
+
+# ---- transients -------------------------------------------------------------------------
+
+C_AIR = 343.0
+TR_PINGS, TR_BINS, TR_OVERSAMPLE = 5, 400, 20   # bins cover path 1.0 .. 1.0686 m
+BUMP_PATHS = 1.02 + 0.004 * np.arange(TR_PINGS)     # bounce-1 peak path length per ping (m)
+
+
+@pytest.fixture(scope="module")
+def transients():
+    """Gaussian bumps: bounce 1 at BUMP_PATHS, bounce 2 weaker and later, bounce 3 empty."""
+    from sonarsim.dataset import Transients
+
+    width = C_AIR / (FS * TR_OVERSAMPLE)
+    paths = 1.0 + (np.arange(TR_BINS) + 0.5) * width
+    data = np.zeros((TR_PINGS, 3, TR_BINS), np.float32)
+    for i, peak in enumerate(BUMP_PATHS):
+        data[i, 0] = (1.0 + i) * np.exp(-0.5 * ((paths - peak) / 0.002) ** 2)
+        data[i, 1] = 0.01 * np.exp(-0.5 * ((paths - 1.04) / 0.004) ** 2)
+    tx = np.tile([0.8, 0.0, 0.1], (TR_PINGS, 1))
+    return Transients(data, 1.0, width, C_AIR, FS, TR_OVERSAMPLE, tx, tx - [0, 0, 0.04])
+
+
+def test_transients_pictures_keep_the_floats(transients, tmp_path):
+    from sonarsim.plot_transients import energy_per_bounce, plot_transients
+
+    written = plot_transients(transients, tmp_path, pings=[0, 4])
+    assert {p.name for p in written} == {
+        "transients.png", "transients_energy.png", "transients_profiles.png",
+        "transients_bounce1.exr", "transients_bounce2.exr", "transients_bounce3.exr"}
+    for path in written:
+        assert path.stat().st_size > (1000 if path.suffix == ".png" else 0)
+    for b in range(3):
+        y = _exr(tmp_path / f"transients_bounce{b + 1}.exr")["Y"]
+        np.testing.assert_array_equal(y, transients.transients[:, b, :])
+    y1 = _exr(tmp_path / "transients_bounce1.exr")["Y"]
+    peaks = transients.path_lengths()[np.argmax(y1, axis=1)]
+    np.testing.assert_allclose(peaks, BUMP_PATHS, atol=transients.path_bin_width)
+    # Gaussian area: amplitude * sigma * sqrt(2 pi) / bin width, summed over pings.
+    expected_1 = np.sum(1.0 + np.arange(TR_PINGS)) * 0.002 * np.sqrt(2 * np.pi)
+    expected_2 = TR_PINGS * 0.01 * 0.004 * np.sqrt(2 * np.pi)
+    energy = energy_per_bounce(transients)
+    np.testing.assert_allclose(energy * transients.path_bin_width, [expected_1, expected_2, 0.0],
+                               rtol=1e-3)
+    np.testing.assert_allclose(energy, transients.transients.astype(np.float64).sum(axis=(0, 2)))
+    with pytest.raises(InputError, match="0..4"):
+        plot_transients(transients, tmp_path, pings=[5])
+
+
+def test_max_pool_rows_and_power_db():
+    from sonarsim.plot import max_pool_rows
+
+    rows = np.arange(14, dtype=np.float32).reshape(7, 2)[::-1]     # strided view, 7 rows
+    np.testing.assert_array_equal(max_pool_rows(rows, 3), [[12, 13], [6, 7], [0, 1]])
+    np.testing.assert_allclose(to_db(np.array([4.0, 0.4, 0.0]), 20.0, power=True),
+                               [0.0, -10.0, -20.0], atol=1e-5)
+
+
+def test_cli_plot_transients_prints_energies(transients, tmp_path, capsys):
+    from sonarsim.cli import main
+
+    path = tmp_path / "t.h5"
+    transients.write(path)
+    assert main(["plot", str(path), "--out", str(tmp_path / "pics"), "--pings", "1"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("bounce")]
+    printed = [float(ln.split()[3]) for ln in lines]
+    sums = transients.transients.astype(np.float64).sum(axis=(0, 2))
+    np.testing.assert_allclose(printed, sums, rtol=1e-6)
+    assert (tmp_path / "pics" / "transients_bounce2.exr").exists()
+
+
+def test_cli_plot_dataset_with_transients(dataset, transients, tmp_path, capsys):
+    from sonarsim.cli import main
+
+    ds = SonarDataset(waveforms=dataset.waveforms[:TR_PINGS], tx=transients.tx,
+                      rx=transients.rx, boresight=-transients.tx, pulse=dataset.pulse, fs=FS,
+                      sound_speed=C_AIR, source="test", transients=transients)
+    path = tmp_path / "d.h5"
+    ds.write(path)
+    assert main(["plot", str(path), "--out", str(tmp_path / "pics")]) == 0
+    assert "bounce 2: energy" in capsys.readouterr().out
+    for name in ("echo_mf.exr", "transients.png", "transients_profiles.png"):
+        assert (tmp_path / "pics" / name).stat().st_size > 1000
+    np.testing.assert_array_equal(_exr(tmp_path / "pics" / "transients_bounce1.exr")["Y"],
+                                  transients.transients[:, 0])
+
+
+def test_cli_plot_refuses_volumes_and_foreign_files(tmp_path, capsys):
+    import h5py
+
+    from sonarsim.cli import main
+    from sonarsim.dataset import Volume
+    from sonarsim.plot_transients import plot_transients
+
+    vol = tmp_path / "v.h5"
+    Volume(np.zeros((2, 2, 2), np.complex64), [[0, 1], [0, 1], [0, 1]], "bp", {}).write(vol)
+    assert main(["plot", str(vol), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "recon export" in err and "v.h5" in err
+    with h5py.File(tmp_path / "foreign.h5", "w") as f:
+        f["x"] = np.zeros(3)
+    assert main(["plot", str(tmp_path / "foreign.h5"), "--out", str(tmp_path / "x")]) == 2
+    assert "not a sonarsim file" in capsys.readouterr().err
+    with pytest.raises(InputError, match="Transients"):
+        plot_transients(np.zeros((2, 3, 4)), tmp_path)
