@@ -23,13 +23,12 @@ Decisions (see docs/evaluation.md):
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from sonarsim.atomic import atomic_path
 from sonarsim.errors import InputError
 
 NORMALIZATIONS = ("minmax", "max")
@@ -198,13 +197,6 @@ def pixel_extent(bounds, shape, axis: int) -> tuple[float, float]:
     return float(b[axis, 0] - d / 2), float(last + d / 2)
 
 
-def _atomic_target(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return tmp
-
-
 def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = "",
                   dpi: int = 120) -> Path:
     """Write the three MIPs (along z, y, x) with metric axes and a colour bar as a PNG."""
@@ -228,14 +220,11 @@ def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = 
     fig.colorbar(image, ax=list(axs), shrink=0.85, label="normalised |σ|")
     if title:
         fig.suptitle(title)
-    tmp = _atomic_target(path)
     try:
-        fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format="png")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return path
 
 
@@ -273,13 +262,8 @@ def write_mip_exr(path: str | Path, magnitude: np.ndarray, bounds) -> Path:
             "sonarsim_v_range_m": " ".join(f"{x:.9g}" for x in pixel_extent(bounds, shape, v)),
         }
         parts.append(OpenEXR.Part(header, {"Y": im}, f"mip_{AXIS_NAMES[axis]}"))
-    tmp = _atomic_target(path)
-    try:
-        OpenEXR.File(parts).write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_path(path) as tmp:
+        OpenEXR.File(parts).write(str(tmp))
     return path
 
 
@@ -334,11 +318,6 @@ def write_mesh(path: str | Path, mesh: trimesh.Trimesh) -> Path:
     kind = path.suffix.lower().lstrip(".")
     if kind not in ("ply", "obj", "stl", "off", "glb"):
         raise InputError(f"{path}: mesh format must be .ply, .obj, .stl, .off or .glb")
-    tmp = _atomic_target(path)
-    try:
+    with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=kind)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return path

@@ -349,7 +349,6 @@ class BoundVoxels:
         return self.vf.sample(self.re, self.im, points)
 
     def gradient_of_magnitude(self, points):
-        import drjit as dr
         re, im, g_re, g_im = self.vf.sample_with_gradient(self.re, self.im, points)
         mag = _magnitude(re, im)
         return re, im, (g_re * re + g_im * im) / mag

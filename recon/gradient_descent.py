@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonarsim.atomic import atomic_path
 from sonarsim.errors import FormatError, InputError
 
 from . import forward, measurements
@@ -408,12 +409,8 @@ def _save_checkpoint(path, opt, rng, iteration, history, grid, settings):
     arrays["rng_state"] = np.array(json.dumps(rng.bit_generator.state))
     arrays["history"] = np.array(json.dumps(history))
     arrays["settings"] = np.array(json.dumps(asdict(settings)))
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
+    with atomic_path(path, keep_suffix=False) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _load_checkpoint(path, opt, rng, grid, settings, m):

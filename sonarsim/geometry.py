@@ -13,12 +13,12 @@ import csv
 import io
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import FormatError, InputError
 
 # --- Rig constants (REFERENCE_SPEC §1.1, from the AirSAS SysParams.csv), rig frame, metres.
@@ -410,23 +410,15 @@ def save_poses(path: str | os.PathLike, poses: Poses, boresight: str = "auto") -
     table = np.concatenate(parts[boresight], axis=1)
     header = {"none": POSE_HEADER, "shared": POSE_HEADER + BORESIGHT_HEADER,
               "both": POSE_HEADER + TWO_BORESIGHT_HEADER}[boresight]
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            if suffix == ".npy":
-                np.save(f, table)
-            else:
-                buf = io.StringIO()
-                writer = csv.writer(buf, lineterminator="\n")
-                writer.writerow(header)
-                writer.writerows([[repr(float(v)) for v in row] for row in table])
-                f.write(buf.getvalue().encode("utf-8"))
-        os.replace(tmp, p)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(p, keep_suffix=False) as tmp, open(tmp, "wb") as f:
+        if suffix == ".npy":
+            np.save(f, table)
+        else:
+            buf = io.StringIO()
+            writer = csv.writer(buf, lineterminator="\n")
+            writer.writerow(header)
+            writer.writerows([[repr(float(v)) for v in row] for row in table])
+            f.write(buf.getvalue().encode("utf-8"))
 
 
 # --- Crop window ------------------------------------------------------------------------

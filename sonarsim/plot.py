@@ -20,37 +20,18 @@ In the EXR files row i is ping i and column k is sample k (its time is in the he
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from . import geometry, signals
+from .atomic import atomic_path
 from .errors import InputError
 
 FIGURE_DPI = 120
 _MF_CHUNK = 2048        # pings per matched-filter FFT batch (bounds memory for big scans)
 MAX_PNG_ROWS = 2000     # PNG echo images max-pool consecutive pings down to this many rows
 _MAX_TRAJECTORY_POINTS = 4000
-
-
-def _atomic_target(path: Path):
-    """(temporary path in the same directory, finaliser that renames it onto ``path``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
-def _replace_or_clean(tmp: Path, path: Path, ok: bool) -> None:
-    if ok:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)      # mkstemp creates 0600; give the usual mode
-        os.replace(tmp, path)
-    elif tmp.exists():
-        tmp.unlink()
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray], comments: str = "") -> Path:
@@ -65,14 +46,8 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], comments: str =
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     if comments:
         header["comments"] = comments
-    tmp = _atomic_target(path)
-    ok = False
-    try:
-        with OpenEXR.File(header, arrays) as f:
-            f.write(str(tmp))
-        ok = True
-    finally:
-        _replace_or_clean(tmp, path, ok)
+    with atomic_path(path) as tmp, OpenEXR.File(header, arrays) as f:
+        f.write(str(tmp))
     return path
 
 
@@ -80,13 +55,8 @@ def save_figure(fig, path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
-    tmp = _atomic_target(path)
-    ok = False
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=FIGURE_DPI, format="png")
-        ok = True
-    finally:
-        _replace_or_clean(tmp, path, ok)
     return path
 
 

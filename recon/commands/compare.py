@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from sonarsim.atomic import atomic_path
 from sonarsim.errors import InputError
 
 from .. import export, metrics
@@ -91,17 +90,11 @@ def run(args: argparse.Namespace) -> int:
         axs[r, 3].text(0, 0.5, text, va="center", family="monospace")
         axs[r, 3].axis("off")
     fig.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{args.out.name}.", suffix=args.out.suffix,
-                               dir=args.out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=100)
-        os.replace(tmp, args.out)
+        with atomic_path(args.out) as tmp:
+            fig.savefig(tmp, dpi=100)
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.remove(tmp)
     print(f"figure: {args.out}")
     for path, _, _, _, res, _ in rows:
         print(f"  {path}: IoU {_fmt(res['iou'])}, Chamfer² {_fmt(res['chamfer_sq'])} m², "

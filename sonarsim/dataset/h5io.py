@@ -1,12 +1,13 @@
 """Format identifiers and crash-safe HDF5 writing shared by all sonarsim files."""
 from __future__ import annotations
 
-import contextlib
 import os
 from pathlib import Path
 from typing import Callable
 
 import h5py
+
+from ..atomic import atomic_path, fsync_path
 
 FORMAT_VERSION = 1
 KIND_TRANSIENTS = "sonarsim.transients"
@@ -21,54 +22,24 @@ PARTIAL_SUFFIX = ".partial"
 PathLike = str | os.PathLike
 
 
-def _temp_name(path: Path) -> Path:
-    # Leading dot and no '.h5' ending: never mistaken for a finished file by globbing users.
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
-
-
-def _fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def commit(tmp: Path, final: Path) -> None:
-    """Flush ``tmp`` to disk and rename it to ``final`` atomically."""
-    _fsync_file(tmp)
+    """Flush ``tmp`` to disk and rename it to ``final`` atomically (the stream writer's
+    ``.partial`` file, which lives across runs, is finished this way)."""
+    fsync_path(tmp)
     os.replace(tmp, final)
-    _fsync_dir(final.parent)
+    fsync_path(final.parent)
 
 
 def atomic_write_h5(path: PathLike, fill: Callable[[h5py.File], None]) -> Path:
     """Create HDF5 file ``path`` by calling ``fill(file)`` on a temporary file in the same
     directory and renaming it into place.  If ``fill`` raises, the temporary file is
-    removed and an existing ``path`` is left untouched."""
+    removed and an existing ``path`` is left untouched.  The temporary name does not end
+    in ``.h5``, so it is never mistaken for a finished file."""
     final = Path(path)
-    tmp = _temp_name(final)
-    try:
+    with atomic_path(final, keep_suffix=False) as tmp:
         with h5py.File(tmp, "w") as f:
             fill(f)
             f.flush()
-        commit(tmp, final)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
     return final
 
 
