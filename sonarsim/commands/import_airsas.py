@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._options import add_box_option, parse_box
+
 HELP = "Import a real AirSAS scan folder (LabVIEW CSVs) into a sonar dataset."
 
 
@@ -28,20 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--waveform-index", type=int, default=None, metavar="I",
                         help="use only the flights of waveform I (Coordinates.csv 'Waveform' "
                              "column); required when a scan interleaves two waveforms")
-    parser.add_argument("--box", type=float, nargs=6, default=None,
-                        metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
-                        help="scene box (m) whose centre the beams point at "
+    add_box_option(parser, "scene box (m) whose centre the beams point at "
                              "(default the AirSAS real box ±0.125 × ±0.125 × [0, 0.2])")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def parse_box(values):
-    """SceneBox from 6 floats X0 X1 Y0 Y1 Z0 Z1, or None."""
-    if values is None:
-        return None
-    from ..geometry import SceneBox
-    return SceneBox.from_bounds([[values[0], values[1]], [values[2], values[3]],
-                                 [values[4], values[5]]])
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,22 +4,21 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._options import add_box_option, parse_box
+
 HELP = "Import a reference system_data.pik (loaded safely, no code runs) into a sonar dataset."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("pik", type=Path, help="system_data.pik of the reference code")
     parser.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
-    parser.add_argument("--box", type=float, nargs=6, default=None,
-                        metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
-                        help="scene box (m) whose centre the beams point at unless the pickle "
+    add_box_option(parser, "scene box (m) whose centre the beams point at unless the pickle "
                              "has tx_vectors (default: the box of geometry.corners, else the "
                              "AirSAS real box)")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..importers.pik import import_pik
-    from .import_airsas import parse_box
 
     ds = import_pik(args.pik, box=parse_box(args.box))
     ds.write(args.out)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._options import add_box_option, parse_box
+
 HELP = ("Write pictures (PNG + float EXR) of a sonar dataset (echo images, pulse, trajectory) "
         "or of a transients file (per-bounce ping x path-length images, energy per bounce).")
 
@@ -17,9 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--complex-exr", action="store_true",
                         help="also store the matched filter's real and imaginary parts "
                              "(channels re, im) in echo_mf.exr")
-    parser.add_argument("--box", type=float, nargs=6, default=None,
-                        metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
-                        help="scene box (m) drawn in the trajectory plot (default: the box "
+    add_box_option(parser, "scene box (m) drawn in the trajectory plot (default: the box "
                              "recorded by the importer, else by data source)")
     parser.add_argument("--pings", type=int, nargs="+", default=None, metavar="I",
                         help="ping indices of the transients' energy-vs-path-length plot "
@@ -31,7 +31,6 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import FormatError, InputError
     from ..plot import plot_dataset
     from ..plot_transients import energy_lines, plot_transients
-    from .import_airsas import parse_box
 
     kind = file_kind(args.file)
     if kind == KIND_VOLUME:
