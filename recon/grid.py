@@ -129,24 +129,8 @@ class Grid:
 
 
 def scene_box_of(dataset):
-    """The scene box a dataset declares in ``meta['box']``, else ``sonarsim.geometry.SIM_BOX``.
-
-    ``meta['box']`` = [[x0, x1], [y0, y1], [z0, z1]] metres (the layout of
-    :class:`sonarsim.dataset.Volume` bounds), as ``simulate``, ``import-airsas`` and
-    ``import-pik`` write it.
-    """
+    """The scene box a dataset declares in ``meta['box']``, else ``sonarsim.geometry.SIM_BOX``
+    (see :func:`sonarsim.dataset.declared_scene_box`)."""
     from sonarsim import geometry
-    meta = getattr(dataset, "meta", None) or {}
-    if "box" not in meta:
-        if "box_lo" in meta or "box_hi" in meta:
-            raise InputError("dataset meta 'box_lo'/'box_hi' is not read: store the scene box as "
-                             "meta 'box' = [[x0, x1], [y0, y1], [z0, z1]] (m)")
-        return geometry.SIM_BOX
-    try:
-        a = np.asarray(meta["box"], dtype=np.float64)
-    except (TypeError, ValueError):
-        a = np.empty(0)
-    if a.shape != (3, 2) or not np.all(np.isfinite(a)) or not np.all(a[:, 1] > a[:, 0]):
-        raise InputError(f"dataset meta 'box': expected [[x0, x1], [y0, y1], [z0, z1]] (m) with "
-                         f"x0 < x1 etc., got {meta['box']!r}")
-    return geometry.SceneBox(a[:, 0], a[:, 1])
+    from sonarsim.dataset import declared_scene_box
+    return declared_scene_box(dataset, geometry.SIM_BOX)

@@ -222,17 +222,11 @@ def _trajectory_figure(ds, box: "geometry.SceneBox"):
 
 
 def default_box(ds) -> "geometry.SceneBox":
-    """The scene box recorded in ``ds.meta`` (box_lo/box_hi), else by source kind."""
-    meta = getattr(ds, "meta", None) or {}
-    if "box_lo" in meta and "box_hi" in meta:
-        try:
-            return geometry.SceneBox(np.asarray(meta["box_lo"], float),
-                                     np.asarray(meta["box_hi"], float))
-        except (InputError, ValueError, TypeError):
-            pass
-    if str(ds.source).startswith("airsas"):
-        return geometry.AIRSAS_REAL_BOX
-    return geometry.SIM_BOX
+    """The scene box recorded in ``ds.meta['box']``, else the usual box of its source kind."""
+    from .dataset import declared_scene_box
+    fallback = geometry.AIRSAS_REAL_BOX if str(ds.source).startswith("airsas") \
+        else geometry.SIM_BOX
+    return declared_scene_box(ds, fallback)
 
 
 def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = None,

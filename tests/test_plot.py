@@ -195,3 +195,14 @@ def test_cli_plot_refuses_volumes_and_foreign_files(tmp_path, capsys):
     assert "not a sonarsim file" in capsys.readouterr().err
     with pytest.raises(InputError, match="Transients"):
         plot_transients(np.zeros((2, 3, 4)), tmp_path)
+
+
+def test_trajectory_box_is_the_one_the_dataset_records(dataset):
+    from dataclasses import replace
+
+    from sonarsim.plot import default_box
+    box = [[-0.1, 0.1], [-0.15, 0.15], [0.0, 0.25]]
+    recorded = default_box(replace(dataset, meta={"box": box}))
+    np.testing.assert_array_equal(recorded.lo, [-0.1, -0.15, 0.0])
+    np.testing.assert_array_equal(recorded.hi, [0.1, 0.15, 0.25])
+    assert default_box(replace(dataset, meta={})).hi[2] == pytest.approx(0.3)  # SIM_BOX

@@ -21,11 +21,11 @@ atomic writes), ``attributes`` (meta/params encoding), ``reader`` (validating re
 from .any_kind import file_kind, inspect, read_any
 from .h5io import (FORMAT_VERSION, KIND_DATASET, KIND_NAMES, KIND_TRANSIENTS, KIND_VOLUME,
                    PARTIAL_SUFFIX, PathLike, atomic_write_h5)
-from .sonar_dataset import SonarDataset
+from .sonar_dataset import SonarDataset, declared_scene_box
 from .stream import DatasetStreamWriter, TransientsLayout
 from .transients import Transients
 from .volume import Volume
 
 __all__ = ["FORMAT_VERSION", "KIND_TRANSIENTS", "KIND_DATASET", "KIND_VOLUME", "Transients",
-           "SonarDataset", "Volume", "read_any", "file_kind", "inspect", "atomic_write_h5",
+           "SonarDataset", "declared_scene_box", "Volume", "read_any", "file_kind", "inspect", "atomic_write_h5",
            "DatasetStreamWriter", "TransientsLayout"]

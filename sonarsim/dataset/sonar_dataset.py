@@ -226,3 +226,27 @@ class SonarDataset:
             rd.check_kind(KIND_TRANSIENTS, "transients")
             fields_["transients"] = Transients._read_fields(rd, load, "transients/")
         return fields_
+
+
+def declared_scene_box(dataset, default):
+    """The scene box a dataset declares in ``meta['box']``, else ``default`` (a SceneBox).
+
+    ``meta['box']`` = [[x0, x1], [y0, y1], [z0, z1]] metres (the layout of
+    :class:`~sonarsim.dataset.Volume` bounds), as ``simulate``, ``import-airsas`` and
+    ``import-pik`` write it. Works on anything with a ``meta`` dict.
+    """
+    from ..geometry import SceneBox
+    meta = getattr(dataset, "meta", None) or {}
+    if "box" not in meta:
+        if "box_lo" in meta or "box_hi" in meta:
+            raise InputError("dataset meta 'box_lo'/'box_hi' is not read: store the scene box as "
+                             "meta 'box' = [[x0, x1], [y0, y1], [z0, z1]] (m)")
+        return default
+    try:
+        a = np.asarray(meta["box"], dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.empty(0)
+    if a.shape != (3, 2) or not np.all(np.isfinite(a)) or not np.all(a[:, 1] > a[:, 0]):
+        raise InputError(f"dataset meta 'box': expected [[x0, x1], [y0, y1], [z0, z1]] (m) with "
+                         f"x0 < x1 etc., got {meta['box']!r}")
+    return SceneBox(a[:, 0], a[:, 1])
