@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 
 from sonarsim.atomic import atomic_path
+from sonarsim.dataset.volume import voxel_axes as volume_voxel_axes
 from sonarsim.errors import InputError
 
 NORMALIZATIONS = ("minmax", "max")
@@ -78,9 +79,7 @@ def voxel_spacing(bounds, shape: tuple[int, int, int]) -> np.ndarray:
 
 def voxel_axes(bounds, shape: tuple[int, int, int]) -> list[np.ndarray]:
     """Voxel-centre coordinates per axis, ``[x [nx], y [ny], z [nz]]`` in metres."""
-    b = check_bounds(bounds, shape)
-    return [np.linspace(b[a, 0], b[a, 1], shape[a]) if shape[a] > 1
-            else np.array([b[a, 0]]) for a in range(3)]  # a single voxel sits at lo
+    return list(volume_voxel_axes(check_bounds(bounds, shape), shape))
 
 
 def crop_volume(volume: np.ndarray, bounds, box) -> tuple[np.ndarray, np.ndarray]:

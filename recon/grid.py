@@ -72,8 +72,8 @@ class Grid:
 
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Voxel-centre coordinates along x, y, z (metres), each ``[n_axis]``."""
-        return tuple(np.linspace(lo, hi, n) if n > 1 else np.array([lo])
-                     for (lo, hi), n in zip(self.bounds, self.shape))
+        from sonarsim.dataset.volume import voxel_axes
+        return voxel_axes(self.bounds, self.shape)
 
     @property
     def spacing(self) -> np.ndarray:

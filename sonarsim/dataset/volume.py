@@ -17,6 +17,12 @@ from .reader import Reader, open_checked
 VOLUME_ATTRS = ("bounds", "method")
 
 
+def voxel_axes(bounds, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x [nx], y [ny], z [nz]) voxel-centre coordinates (m) of a grid with ``bounds`` [3, 2]:
+    ``linspace(lo, hi, n)`` per axis, endpoints included; a single voxel sits at lo."""
+    return tuple(np.linspace(lo, hi, n) for (lo, hi), n in zip(np.asarray(bounds), shape))
+
+
 def voxel_spacing(bounds: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """[3] spacing of voxel centres (m) of a grid with ``bounds`` [3, 2] (m) and ``shape``;
     NaN along an axis with a single voxel."""
@@ -58,7 +64,7 @@ class Volume:
 
     def voxel_centers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x [nx], y [ny], z [nz]) voxel-centre coordinates, metres."""
-        return tuple(np.linspace(lo, hi, n) for (lo, hi), n in zip(self.bounds, self.shape))
+        return voxel_axes(self.bounds, self.shape)
 
     def voxel_size(self) -> np.ndarray:
         """[3] spacing of voxel centres (m); NaN along an axis with a single voxel."""
