@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from sonarsim.errors import InputError
+from sonarsim.progress import progress_bar
 
 from . import measurements
 from ._jit import jit
@@ -192,7 +193,7 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
     pad_ping = np.zeros(12, dtype=np.float32)
     pad_ping[7], pad_ping[11] = -1.0, -2.0
     n_up_o = dr.opaque(m.UInt32, n_up)  # opaque: a new window length must not recompile
-    bar = _progress_bar(n_pings, progress)
+    bar = progress_bar(n_pings, progress, unit="ping", desc="backprojection", leave=False)
     b0 = 0
     for host in blocks:
         n_b = len(host)
@@ -247,18 +248,3 @@ def backproject_numpy(dataset, grid: Grid, *, upsample: int = 5, incoherent: boo
             nxt = np.where(k + 1 < n_up, sig[j, np.minimum(k + 1, n_up - 1)], 0)
             acc[ok] += (1 - f) * sig[j, k] + f * nxt
     return acc.astype(np.complex64).reshape(grid.shape)
-
-
-class _NoBar:
-    def update(self, n):
-        pass
-
-    def close(self):
-        pass
-
-
-def _progress_bar(total: int, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-    return tqdm(total=total, unit="ping", desc="backprojection", leave=False, disable=None)

@@ -40,6 +40,7 @@ import numpy as np
 
 from sonarsim.atomic import atomic_path
 from sonarsim.errors import FormatError, InputError
+from sonarsim.progress import progress_bar
 
 from . import forward, measurements
 from ._jit import jit
@@ -349,7 +350,8 @@ def fit(dataset, grid: Grid, settings: GDSettings, *, checkpoint=None, checkpoin
     bound = _BoundField(vf, opt)
     directions = forward.cone_directions(settings.n_rays, settings.beamwidth_deg)
     eps = 0.5 * float(np.min(vf.h))
-    bar = _bar(settings.iterations, start, progress)
+    bar = progress_bar(settings.iterations, progress, unit="it", desc="gd", initial=start,
+                       leave=False)
     for it in range(start, settings.iterations):
         pings, bins, roll = sampler.draw()
         geo = forward.ping_geometry(dataset, pings, bins, speeds)
@@ -435,21 +437,3 @@ def _load_checkpoint(path, opt, rng, grid, settings, m):
                            m.Float(data[f"{key}_v"]), extra[3]))
     rng.bit_generator.state = json.loads(str(data["rng_state"]))
     return int(data["iteration"]), json.loads(str(data["history"]))
-
-
-class _NoBar:
-    def update(self, n):
-        pass
-
-    def set_postfix(self, **kw):
-        pass
-
-    def close(self):
-        pass
-
-
-def _bar(total, initial, enabled):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-    return tqdm(total=total, initial=initial, unit="it", desc="gd", leave=False, disable=None)

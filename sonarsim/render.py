@@ -26,6 +26,7 @@ import numpy as np
 from .dataset import Transients
 from .errors import InputError
 from .geometry import CropWindow, Poses, SceneBox, crop_window
+from .progress import progress_bar
 
 DEFAULT_BEAMS = {"tx_beam": "cone", "tx_beamwidth": 30.0, "rx_beam": "cone", "rx_beamwidth": 30.0}
 # The reference renderer (REFERENCE_SPEC §6.1): isotropic point light; a 25° perspective
@@ -160,7 +161,7 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
                          f"use at most {choose_chunk_size(paths_per_pose, bounces, window.n_bins, 2**62)}")
     chunk_size = int(chunk_size)
     integrator = make_integrator(bounces, beams)
-    bar = _progress_bar(n, progress)
+    bar = progress_bar(n, progress, unit="pose", desc="render")
     try:
         for a in range(first, end, chunk_size):
             sl = slice(a, min(end, a + chunk_size))
@@ -168,12 +169,10 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
                 scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl], poses.rx_boresight[sl],
                 window.path_start, window.bin_width, window.n_bins, paths_per_pose, seed,
                 pose_offset=a)
-            if bar is not None:
-                bar.update(sl.stop - sl.start)
+            bar.update(sl.stop - sl.start)
             yield sl, hist
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
 
 
 def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
@@ -255,10 +254,3 @@ def _check_range(start, stop, n: int) -> tuple[int, int]:
 def _check_positive(name: str, value) -> None:
     if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
         raise InputError(f"{name} must be a positive number, got {value}")
-
-
-def _progress_bar(total: int, enabled: bool):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=total, unit="pose", desc="render", dynamic_ncols=True, disable=None)
