@@ -2,6 +2,6 @@
 
 Builds on :mod:`sonarsim` (runtime, signals, file formats); never the reverse.
 """
-import sonarsim as _sonarsim  # noqa: F401  (locates libLLVM before drjit is imported)
+# Dr.Jit is reached through sonarsim.runtime.mitsuba() (recon._jit), which locates libLLVM first.
 
 __version__ = "0.1.0"

@@ -3,7 +3,7 @@
 Dr.Jit's CPU (LLVM) backend loads ``libLLVM`` at run time. libLLVM 15 aborts the
 interpreter on Dr.Jit 1.5 kernels and libLLVM 14 is refused, so before drjit is
 imported we point ``DRJIT_LIBLLVM_PATH`` at the newest libLLVM >= 16 we can find
-(:func:`configure_llvm`; called when ``sonarsim`` is imported).
+(:func:`configure_llvm`; called by :func:`set_variant` on first use, never at import).
 
 :func:`mitsuba` returns the ``mitsuba`` module with the variant selected
 (``llvm_ad_mono`` unless ``SONARSIM_VARIANT`` or :func:`set_variant` ask for
@@ -133,7 +133,10 @@ def set_variant(name: str | None = None):
     except (ImportError, AttributeError, ValueError) as exc:
         raise RuntimeSetupError(f"variant {name!r} cannot run here: {exc}") from exc
     from . import plugins
-    plugins.register_all(mi)
+    try:
+        plugins.register_all(mi)
+    except plugins.PluginImportError as exc:
+        raise RuntimeSetupError(str(exc)) from exc
     _state["variant"] = name
     return mi
 

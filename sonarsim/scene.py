@@ -60,6 +60,7 @@ triangle mesh as given. ``smooth = false`` uses the flat face normals.
 """
 from __future__ import annotations
 
+import importlib.resources
 import tomllib
 import warnings
 from dataclasses import dataclass, field
@@ -72,7 +73,6 @@ import trimesh
 from .errors import FormatError
 from .geometry import SIM_BOX, SceneBox
 
-SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 SHAPES = ("sphere", "cube", "cylinder")
 DEFAULT_FIT_FILL = 0.6
@@ -203,9 +203,14 @@ def corner_normals(mesh: trimesh.Trimesh, crease_deg: float = CREASE_ANGLE_DEG
 
 # ----------------------------------------------------------------------------- loading
 
+def _shipped_dir():
+    """The installed ``sonarsim.scenes`` package (a wheel install or the repository's scenes/)."""
+    return importlib.resources.files("sonarsim.scenes")
+
+
 def shipped_scenes() -> list[str]:
     """Names of the scenes shipped with sonarsim (usable wherever a scene file is)."""
-    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+    return sorted(p.name[:-5] for p in _shipped_dir().iterdir() if p.name.endswith(".toml"))
 
 
 def resolve_scene_path(spec: str | Path) -> Path:
@@ -215,9 +220,9 @@ def resolve_scene_path(spec: str | Path) -> Path:
         if not path.is_file():
             raise FormatError(f"{path}: scene file not found")
         return path
-    shipped = SCENES_DIR / f"{spec}.toml"
+    shipped = _shipped_dir() / f"{spec}.toml"
     if shipped.is_file():
-        return shipped
+        return Path(str(shipped))
     raise FormatError(f"{spec}: no such scene file or shipped scene "
                       f"(shipped: {', '.join(shipped_scenes())})")
 
