@@ -1,0 +1,118 @@
+"""Linear ("tent") interpolation of sampled signals at fractional sample indices.
+
+The one home of the delay-interpolation convention of the reconstructors: delay-and-sum
+backprojection *reads* a signal at a delay (:func:`tent_gather`, :func:`tent_gather_jit`);
+the voxel-driven delay model *spreads* a value onto the two neighbouring samples
+(:func:`tent_scatter`, the exact adjoint of :func:`tent_gather`).
+
+Convention
+----------
+* A signal ``s`` has ``n`` samples; sample ``k`` is at time ``(start_sample + k) / fs``
+  after transmission (``fs`` in Hz; for a signal upsampled by an integer factor R, use
+  ``fs·R`` and ``start_sample·R``).
+* A round-trip path length L (metres) with sound speed c (m/s) is at the fractional sample
+  index (dimensionless, in samples) ``u = L·fs/c − start_sample`` (:func:`fractional_index`);
+  kernels precompute ``scale = fs/c`` and ``offset = −start_sample`` so that ``u = L·scale + offset``.
+* The interpolated value is ``s(u) = Σ_k s[k]·h(u − k)`` with the tent ``h(x) = max(0, 1 − |x|)``,
+  i.e. ``(1 − f)·s[k] + f·s[k+1]`` with ``k = floor(u)``, ``f = u − k ∈ [0, 1)``.
+* The window is ``0 ≤ u ≤ n − 1``: outside it the value is 0 (no clamping, no extrapolation).
+  At ``u = n − 1`` exactly, ``f = 0`` and the missing ``s[n]`` counts as 0.
+
+Two variants of the rule exist only as options of backprojection: ``'nearest'`` (value of
+the sample ``floor(u + 0.5)``, window tested after rounding) and ``'floor'`` (value of
+``s[floor(u)]``, the reference code's truncation of the delay to the lower sample).
+
+Dr.Jit kernels read from a packed buffer (:func:`packed_buffer`): per sample ``k`` the four
+float32 ``(Re s[k], Im s[k], Re s[k+1], Im s[k+1])``, so one 16-byte packet gather fetches
+both interpolation nodes.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+MODES = ("linear", "nearest", "floor")
+
+
+def fractional_index(path, fs: float, sound_speed, start_sample: float = 0.0):
+    """Fractional sample index ``u = path·fs/c − start_sample`` (samples) of round-trip
+    ``path`` (metres, any shape) at sample rate ``fs`` (Hz) and sound speed ``c`` (m/s)."""
+    return np.asarray(path) * (float(fs) / np.asarray(sound_speed)) - float(start_sample)
+
+
+def tent_nodes(u, n: int):
+    """Nodes and weights of the tent at fractional indices ``u`` (any shape) for ``n`` samples.
+
+    Returns ``(k, f, valid)``: lower node ``k = floor(u)`` (int64, 0 where not valid), weight
+    ``f = u − k`` of node ``k + 1`` (``1 − f`` of node ``k``; 0 where not valid) and
+    ``valid = 0 ≤ u ≤ n − 1`` (bool). Node ``k + 1 = n`` only occurs with ``f = 0``.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    valid = (u >= 0) & (u <= n - 1)
+    k = np.floor(np.where(valid, u, 0.0))
+    f = np.where(valid, u - k, 0.0)
+    return k.astype(np.int64), f, valid
+
+
+def tent_gather(s, u):
+    """Signal values at fractional indices: ``s`` [..., n] (real or complex), ``u`` [..., m]
+    with the same leading shape → [..., m] (0 outside the window)."""
+    s = np.asarray(s)
+    n = s.shape[-1]
+    k, f, valid = tent_nodes(u, n)
+    padded = np.concatenate([s, np.zeros(s.shape[:-1] + (1,), s.dtype)], axis=-1)
+    lo = np.take_along_axis(padded, k, axis=-1)
+    hi = np.take_along_axis(padded, k + 1, axis=-1)
+    return np.where(valid, (1 - f) * lo + f * hi, 0)
+
+
+def tent_scatter(u, values, n: int):
+    """Adjoint of :func:`tent_gather`: spread ``values`` [..., m] at fractional indices ``u``
+    [..., m] onto ``n`` samples → [..., n] (complex128 for complex values, else float64)."""
+    u = np.asarray(u, dtype=np.float64)
+    values = np.asarray(values)
+    lead = u.shape[:-1]
+    k, f, valid = tent_nodes(u, n)
+    rows = np.arange(int(np.prod(lead, dtype=np.int64))).reshape(lead + (1,)) * (n + 1)
+    size = (n + 1) * int(np.prod(lead, dtype=np.int64))
+
+    def spread(v):
+        v = np.where(valid, v, 0.0)
+        out = (np.bincount((rows + k).ravel(), ((1 - f) * v).ravel(), size)
+               + np.bincount((rows + k + 1).ravel(), (f * v).ravel(), size))
+        return out.reshape(lead + (n + 1,))[..., :n]
+
+    if np.iscomplexobj(values):
+        return spread(values.real.astype(np.float64)) + 1j * spread(values.imag.astype(np.float64))
+    return spread(values.astype(np.float64))
+
+
+def packed_buffer(s) -> np.ndarray:
+    """Packed buffer [P, n, 4] float32 ``(Re s[k], Im s[k], Re s[k+1], Im s[k+1])`` of complex
+    signals ``s`` [P, n] (``s[n]`` = 0), read by :func:`tent_gather_jit`."""
+    s = np.asarray(s, dtype=np.complex64)
+    pairs = np.ascontiguousarray(s).view(np.float32).reshape(s.shape + (2,))
+    buf = np.empty(s.shape + (4,), dtype=np.float32)
+    buf[..., 0:2] = pairs
+    buf[:, :-1, 2:4] = pairs[:, 1:]
+    buf[:, -1, 2:4] = 0.0
+    return buf
+
+
+def tent_gather_jit(m, buf, row, u, n, mode: str = "linear", active=True):
+    """Dr.Jit tent read of one signal per lane: ``buf`` a flat ``m.Float`` view of a
+    :func:`packed_buffer`, ``row`` (``m.UInt32``) the signal's first packet index (signal
+    number × n), ``u`` (``m.Float``) the fractional index, ``n`` the samples per signal
+    (int or ``m.UInt32``). Returns ``(re, im)``, 0 outside the window or where not ``active``.
+    ``mode``: 'linear' (the tent), 'nearest' or 'floor' (see the module docstring)."""
+    import drjit as dr
+    if mode not in MODES:
+        raise ValueError(f"mode: choose one of {MODES}, got {mode!r}")
+    if mode == "nearest":
+        u = dr.floor(u + 0.5)
+    valid = active & (u >= 0) & (u <= m.Float(n - 1))
+    fl = dr.floor(u)
+    s = dr.gather(m.Array4f, buf, row + m.UInt32(m.Int32(fl)), valid)
+    if mode != "linear":
+        return s[0], s[1]
+    f = u - fl
+    return dr.fma(f, s[2] - s[0], s[0]), dr.fma(f, s[3] - s[1], s[1])
