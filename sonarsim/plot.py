@@ -6,7 +6,7 @@
   The PNG shows the envelope |analytic(waveform)| in dB re its maximum; the EXR keeps the
   raw float32 waveform samples (channel ``Y``).
 - ``echo_mf.png`` / ``echo_mf.exr``: the same for the matched-filtered analytic signal
-  (REFERENCE_SPEC §1.6 step 4); EXR channel ``Y`` = magnitude (plus ``re``, ``im`` with
+  (:func:`sonarsim.signals.matched_filter`, the same linear filter the reconstructions use); EXR channel ``Y`` = magnitude (plus ``re``, ``im`` with
   ``complex_exr``).
 - ``pulse.png``: the pulse against time and its spectrum in dB.
 - ``trajectory.png``: TX and RX positions in 3-D with the scene box and a few boresights.
@@ -25,73 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from . import geometry, signals
-from .atomic import atomic_path
 from .errors import InputError
+from .figures import MAX_PNG_ROWS, max_pool_rows, ping_group, save_figure, to_db, write_exr
+from .plot_transients import check_profile_pings, plot_transients
 
-FIGURE_DPI = 120
 _MF_CHUNK = 2048        # pings per matched-filter FFT batch (bounds memory for big scans)
-MAX_PNG_ROWS = 2000     # PNG echo images max-pool consecutive pings down to this many rows
 _MAX_TRAJECTORY_POINTS = 4000
-
-
-def write_exr(path: str | Path, channels: dict[str, np.ndarray], comments: str = "") -> Path:
-    """Write float32 image channels (each [H, W]) to an OpenEXR file, atomically."""
-    import OpenEXR
-
-    path = Path(path)
-    arrays = {name: np.ascontiguousarray(a, dtype=np.float32) for name, a in channels.items()}
-    shapes = {a.shape for a in arrays.values()}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise InputError(f"{path}: EXR channels must be 2-D and of one shape, got {shapes}")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    if comments:
-        header["comments"] = comments
-    with atomic_path(path) as tmp, OpenEXR.File(header, arrays) as f:
-        f.write(str(tmp))
-    return path
-
-
-def save_figure(fig, path: Path) -> Path:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    FigureCanvasAgg(fig)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=FIGURE_DPI, format="png")
-    return path
-
-
-def to_db(magnitude: np.ndarray, dynamic_range_db: float, *, power: bool = False,
-          reference: float | None = None) -> np.ndarray:
-    """20·log10(magnitude / reference) clipped to [−dynamic_range_db, 0] (float32).
-
-    ``power=True`` for energies/intensities: 10·log10 instead. ``reference`` defaults to
-    the maximum of ``magnitude``.
-    """
-    mag = np.asarray(magnitude, dtype=np.float32)
-    factor = 10.0 if power else 20.0
-    peak = reference if reference is not None else (float(mag.max()) if mag.size else 0.0)
-    if not peak > 0:
-        return np.full(mag.shape, -dynamic_range_db, dtype=np.float32)
-    floor = peak * 10.0 ** (-dynamic_range_db / factor)
-    db = factor * np.log10(np.maximum(mag, floor) / peak)
-    return np.minimum(db, 0.0).astype(np.float32)
-
-
-def ping_group(n_pings: int, max_rows: int = MAX_PNG_ROWS) -> int:
-    """Consecutive pings per PNG row so that at most ``max_rows`` rows remain (>= 1)."""
-    return max(1, -(-n_pings // max(1, min(n_pings, max_rows))))
-
-
-def max_pool_rows(rows: np.ndarray, group: int) -> np.ndarray:
-    """Maximum over groups of ``group`` consecutive rows: [N, ...] -> [ceil(N/group), ...].
-
-    The last group may be shorter. Works on strided views without copying them.
-    """
-    full = len(rows) // group * group
-    parts = [rows[:full].reshape(-1, group, *rows.shape[1:]).max(axis=1)]
-    if full < len(rows):
-        parts.append(rows[full:].max(axis=0, keepdims=True))
-    return np.concatenate(parts)
 
 
 def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PNG_ROWS,
@@ -240,7 +179,6 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
     :func:`sonarsim.plot_transients.plot_transients` (``profile_pings`` passed on).
     """
     if getattr(ds, "transients", None) is not None:
-        from .plot_transients import check_profile_pings
         check_profile_pings(profile_pings, ds.transients.n_pings)
     if not (np.isfinite(dynamic_range_db) and dynamic_range_db > 0):
         raise InputError(f"dynamic range must be > 0 dB, got {dynamic_range_db}")
@@ -275,7 +213,6 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
     written.append(save_figure(_pulse_figure(ds.pulse, ds.fs), out / "pulse.png"))
     written.append(save_figure(_trajectory_figure(ds, box), out / "trajectory.png"))
     if getattr(ds, "transients", None) is not None:
-        from .plot_transients import plot_transients
         written += plot_transients(ds.transients, out, dynamic_range_db=dynamic_range_db,
                                    pings=profile_pings)
     return written

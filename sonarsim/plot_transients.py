@@ -23,8 +23,7 @@ import numpy as np
 
 from .dataset import Transients
 from .errors import InputError
-from .plot import (MAX_PNG_ROWS, max_pool_rows, ping_group, save_figure, to_db,
-                   write_exr)
+from .figures import MAX_PNG_ROWS, max_pool_rows, ping_group, save_figure, to_db, write_exr
 
 DEFAULT_PROFILE_PINGS = 4
 _MAX_PANEL_COLUMNS = 3

@@ -199,13 +199,16 @@ def analytic(x, axis: int = -1) -> np.ndarray:
     return np.moveaxis(out.reshape(moved.shape), -1, axis)
 
 
-def matched_filter(x, pulse, axis: int = -1, mode: str = "circular") -> np.ndarray:
-    """Complex analytic cross-correlation of ``x`` with ``pulse`` (REFERENCE_SPEC §1.6 step 4).
+def matched_filter(x, pulse, axis: int = -1, mode: str = "linear") -> np.ndarray:
+    """Complex analytic cross-correlation of ``x`` with ``pulse`` (the reference code's matched
+    filter, `airsas/reconstruct_airsas_scene.py`; sonarsim's default differs: linear, not circular).
 
     Output sample k is the correlation at lag k (k = 0 … T−1, T = x.shape[axis]), so an
-    echo of the pulse starting at sample d peaks at k = d.
+    echo of the pulse starting at sample d peaks at k = d. The default ``'linear'`` is the one
+    pulse compression of the project: pictures (``sonarsim plot``) and reconstructions
+    (``recon``) of the same data use it, so they agree.
 
-    - ``mode='circular'`` (the reference): K = FFT(analytic(pulse zero-padded to T)),
+    - ``mode='circular'`` (the reference, for parity checks): K = FFT(analytic(pulse zero-padded to T)),
       result IFFT(FFT(analytic(x))·conj(K)). Lags wrap around: the tail of an echo that
       starts within L−1 samples of the end leaks into the first samples.
     - ``mode='linear'``: both are zero-padded to T + L − 1 before the same product, and

@@ -91,6 +91,16 @@ def test_png_rows_are_max_pooled_over_ping_groups(dataset):
         np.testing.assert_array_equal(pooled["raw_rows"][r], full["raw_rows"][rows].max(axis=0))
 
 
+def test_echo_image_uses_the_reconstructions_matched_filter(dataset):
+    """A picture and a reconstruction of the same data see the same pulse-compressed signal."""
+    from recon.measurements import matched_filtered
+    from sonarsim.plot import echo_images
+
+    pictured = echo_images(dataset.waveforms, dataset.pulse)["mf"]
+    np.testing.assert_allclose(pictured, np.abs(matched_filtered(dataset)), rtol=1e-5,
+                               atol=1e-6 * float(pictured.max()))
+
+
 # ---- transients -------------------------------------------------------------------------
 
 C_AIR = 343.0

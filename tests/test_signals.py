@@ -88,7 +88,15 @@ def test_matched_filter_real_part_is_twice_circular_correlation():
     padded[:40] = p
     corr = np.array([np.dot(np.roll(x, -k), padded) for k in range(n)])
     expected = 2 * corr - x.sum() * p.sum() / n     # DC bin carries weight 1, not 2
-    np.testing.assert_allclose(signals.matched_filter(x, p).real, expected, atol=1e-10)
+    np.testing.assert_allclose(signals.matched_filter(x, p, mode="circular").real, expected,
+                               atol=1e-10)
+
+
+def test_matched_filter_default_is_the_linear_one_used_everywhere():
+    rng = np.random.default_rng(3)
+    x, p = rng.standard_normal((3, 200)), rng.standard_normal(30)
+    np.testing.assert_array_equal(signals.matched_filter(x, p), signals.matched_filter(x, p, mode="linear"))
+    assert not np.allclose(signals.matched_filter(x, p), signals.matched_filter(x, p, mode="circular"))
 
 
 def test_matched_filter_linear_mode_does_not_wrap():
@@ -225,7 +233,7 @@ def test_pulse_file_errors(tmp_path):
     lambda: signals.analytic(np.array([1.0, np.nan])),
     lambda: signals.analytic(np.float64(1.0)),
     lambda: signals.matched_filter(np.ones(10), np.ones((2, 3))),
-    lambda: signals.matched_filter(np.ones(10), np.ones(20)),
+    lambda: signals.matched_filter(np.ones(10), np.ones(20), mode="circular"),
     lambda: signals.matched_filter(np.ones(10), np.ones(3), mode="fast"),
     lambda: signals.lfm(30e3, 10e3, 1e-3, 0.0),
     lambda: signals.lfm(30e3, 10e3, 1e-3, float("nan")),
