@@ -204,8 +204,14 @@ def rotation_z(angle_deg) -> np.ndarray:
                      np.stack([zero, zero, one], -1)], axis=-2)
 
 
-def rig_positions(angles_deg, heights_m, rig_point=TX_RIG) -> np.ndarray:
-    """[N, 3] world positions R_z(angle) · rig_point − RIG_CENTER + [0, 0, height] (§1.1)."""
+def rig_positions(angles_deg, heights_m, rig_point=TX_RIG, rig_center=RIG_CENTER) -> np.ndarray:
+    """[N, 3] world positions R_z(angle) · rig_point − rig_center + [0, 0, height].
+
+    The one home of the AirSAS pose formula (Reed et al. 2023, the AirSAS rig; the reference
+    code's pose computation): the turntable turns the object by ``angle`` about +z, which
+    is the same as turning the rig by ``angle`` about the object; ``rig_center`` is the rig
+    point that becomes the world origin (metres).
+    """
     angles = np.asarray(angles_deg, dtype=np.float64)
     heights = np.asarray(heights_m, dtype=np.float64)
     if angles.ndim > 1 or heights.ndim > 1:
@@ -219,19 +225,22 @@ def rig_positions(angles_deg, heights_m, rig_point=TX_RIG) -> np.ndarray:
     if not (np.all(np.isfinite(angles)) and np.all(np.isfinite(heights))):
         raise InputError("angles/heights contain NaN or infinity")
     rig = _vec3(rig_point, "rig_point")
-    pos = rotation_z(angles) @ rig - RIG_CENTER
+    pos = rotation_z(angles) @ rig - _vec3(rig_center, "rig_center")
     pos[:, 2] += heights
     return pos
 
 
-def rig_poses(angles_deg, heights_m, box: SceneBox = SIM_BOX) -> Poses:
+def rig_poses(angles_deg, heights_m, box: SceneBox = SIM_BOX, *, tx_rig=TX_RIG, rx_rig=RX_RIG,
+              rig_center=RIG_CENTER) -> Poses:
     """AirSAS poses for turntable ``angles_deg`` [N] (degrees) and track ``heights_m`` [N] (m).
 
+    ``tx_rig``, ``rx_rig``, ``rig_center``: the speaker, the microphone and the centre in the
+    rig frame (m; default: the AirSAS constants above, a real scan passes its SysParams).
     Boresights point from each transducer at ``box.center`` (the reference's
-    ``--point_at_center``, REFERENCE_SPEC §1.1).
+    ``--point_at_center``).
     """
-    tx = rig_positions(angles_deg, heights_m, TX_RIG)
-    rx = rig_positions(angles_deg, heights_m, RX_RIG)
+    tx = rig_positions(angles_deg, heights_m, tx_rig, rig_center)
+    rx = rig_positions(angles_deg, heights_m, rx_rig, rig_center)
     return Poses.pointing_at(tx, rx, box.center)
 
 

@@ -272,17 +272,13 @@ def rig_constants(params: dict, path: Path) -> RigConstants:
 
 def rig_poses(angles_deg: np.ndarray, heights_m: np.ndarray, rig: RigConstants,
               box: "geometry.SceneBox") -> "geometry.Poses":
-    """Poses ``R_z(angle)·rig − CENTER + [0, 0, height]`` (REFERENCE_SPEC §1.1).
+    """The scan's poses by :func:`sonarsim.geometry.rig_poses` with this rig's constants.
 
     ``angles_deg`` [N] degrees, ``heights_m`` [N] metres; positions [N, 3] in metres; both
     beams point at ``box.center``.
     """
-    rotation = geometry.rotation_z(angles_deg)            # [N, 3, 3]
-    lift = np.zeros((rotation.shape[0], 3))
-    lift[:, 2] = heights_m
-    tx = rotation @ rig.tx - rig.center + lift
-    rx = rotation @ rig.rx - rig.center + lift
-    return geometry.Poses.pointing_at(tx, rx, box.center)
+    return geometry.rig_poses(angles_deg, heights_m, box, tx_rig=rig.tx, rx_rig=rig.rx,
+                              rig_center=rig.center)
 
 
 def _select_waveform(coords: Coordinates, waveform_index: int | None, path: Path) -> np.ndarray:
