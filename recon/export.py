@@ -30,6 +30,7 @@ import trimesh
 
 from sonarsim.atomic import atomic_path
 from sonarsim.dataset.volume import voxel_axes as volume_voxel_axes
+from sonarsim.dataset.volume import voxel_spacing as _spacing
 from sonarsim.errors import InputError
 
 NORMALIZATIONS = ("minmax", "max")
@@ -62,19 +63,14 @@ def check_bounds(bounds, shape: tuple[int, int, int]) -> np.ndarray:
 
 
 def voxel_spacing(bounds, shape: tuple[int, int, int]) -> np.ndarray:
-    """Voxel spacing [3] in metres: ``(hi - lo) / (n - 1)``.
-
-    An axis with a single voxel takes the smallest spacing of the other axes.
+    """Voxel cell size [3] in metres for meshes and pictures: ``(hi - lo) / (n - 1)``; an axis
+    with a single voxel takes the smallest spacing of the other axes
+    (:func:`sonarsim.dataset.volume.voxel_spacing`, rule ``'min'``).
     """
     b = check_bounds(bounds, shape)
-    n = np.asarray(shape)
-    multi = n > 1
-    if not multi.any():
+    if not (np.asarray(shape) > 1).any():
         raise InputError("volume has a single voxel: its voxel size is undefined")
-    spacing = np.empty(3)
-    spacing[multi] = (b[multi, 1] - b[multi, 0]) / (n[multi] - 1)
-    spacing[~multi] = spacing[multi].min()
-    return spacing
+    return _spacing(b, shape, single="min")
 
 
 def voxel_axes(bounds, shape: tuple[int, int, int]) -> list[np.ndarray]:

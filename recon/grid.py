@@ -77,10 +77,10 @@ class Grid:
 
     @property
     def spacing(self) -> np.ndarray:
-        """Voxel pitch per axis [3] (metres); 0 along an axis with one voxel."""
-        n = np.asarray(self.shape, dtype=np.float64)
-        ext = self.bounds[:, 1] - self.bounds[:, 0]
-        return np.where(n > 1, ext / np.maximum(n - 1, 1), 0.0)
+        """Voxel pitch per axis [3] (metres); 0 along an axis with one voxel
+        (:func:`sonarsim.dataset.volume.voxel_spacing`, rule ``'zero'``)."""
+        from sonarsim.dataset.volume import voxel_spacing
+        return voxel_spacing(self.bounds, self.shape, single="zero")
 
     def points(self) -> np.ndarray:
         """Voxel centres ``[nx*ny*nz, 3]`` float64, C-order over (nx, ny, nz) (x-major)."""

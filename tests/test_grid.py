@@ -87,3 +87,21 @@ def test_points_range_matches_points():
     g = Grid([[0, 1], [-1, 1], [0, 0.5]], (4, 3, 5))
     np.testing.assert_allclose(g.points_range(7, 29), g.points()[7:29])
     np.testing.assert_allclose(g.points_range(50, 100), g.points()[50:])
+
+
+def test_single_voxel_rule_has_one_home():
+    """Grid, Volume and export use one function, each with its declared single-voxel rule."""
+    from recon import export
+    from sonarsim.dataset.volume import Volume, voxel_spacing
+
+    bounds, shape = np.array([[0.0, 0.4], [0.0, 0.2], [0.05, 0.9]]), (5, 3, 1)
+    assert np.allclose(voxel_spacing(bounds, shape, "zero"), [0.1, 0.1, 0.0])
+    assert np.allclose(voxel_spacing(bounds, shape, "min"), [0.1, 0.1, 0.1])
+    nan = voxel_spacing(bounds, shape)
+    assert np.allclose(nan[:2], [0.1, 0.1]) and np.isnan(nan[2])
+    np.testing.assert_array_equal(Grid(bounds, shape).spacing, voxel_spacing(bounds, shape, "zero"))
+    np.testing.assert_array_equal(export.voxel_spacing(bounds, shape), voxel_spacing(bounds, shape, "min"))
+    vol = Volume(np.zeros(shape, np.complex64), bounds, "test")
+    np.testing.assert_array_equal(vol.voxel_size(), nan)
+    with pytest.raises(ValueError):
+        voxel_spacing(bounds, (1, 1, 1), "min")

@@ -23,12 +23,37 @@ def voxel_axes(bounds, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndar
     return tuple(np.linspace(lo, hi, n) for (lo, hi), n in zip(np.asarray(bounds), shape))
 
 
-def voxel_spacing(bounds: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """[3] spacing of voxel centres (m) of a grid with ``bounds`` [3, 2] (m) and ``shape``;
-    NaN along an axis with a single voxel."""
+SINGLE_VOXEL_RULES = ("nan", "zero", "min")
+
+
+def voxel_spacing(bounds, shape: tuple[int, int, int], single: str = "nan") -> np.ndarray:
+    """[3] spacing of voxel centres (m) of a grid with ``bounds`` [3, 2] (m) and ``shape``.
+
+    The one home of the single-voxel rule. ``(hi − lo)/(n − 1)`` along an axis with n > 1;
+    along an axis with a single voxel (centre at lo, hi ignored) the spacing is undefined
+    and the caller says what it needs:
+
+    - ``single='nan'``: NaN (reporting: there is no spacing);
+    - ``single='zero'``: 0, so that ``lo + index·spacing`` is still the voxel centre
+      (:class:`recon.grid.Grid`);
+    - ``single='min'``: the smallest spacing of the other axes, a positive cell size for a
+      flat volume (marching cubes, pixel extents); a grid of one voxel has none
+      (``ValueError``).
+    """
+    if single not in SINGLE_VOXEL_RULES:
+        raise ValueError(f"single: expected one of {SINGLE_VOXEL_RULES}, got {single!r}")
+    b = np.asarray(bounds, dtype=np.float64).reshape(3, 2)
     n = np.asarray(shape, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(n > 1, (bounds[:, 1] - bounds[:, 0]) / (n - 1), np.nan)
+    multi = n > 1
+    spacing = np.full(3, np.nan)
+    spacing[multi] = (b[multi, 1] - b[multi, 0]) / (n[multi] - 1)
+    if single == "zero":
+        spacing[~multi] = 0.0
+    elif single == "min":
+        if not multi.any():
+            raise ValueError("a grid of a single voxel has no voxel size")
+        spacing[~multi] = spacing[multi].min()
+    return spacing
 
 
 @dataclass(eq=False)
