@@ -1,4 +1,12 @@
-"""The volume file: a complex voxel reconstruction (``recon ...``)."""
+"""The volume file: a complex voxel reconstruction (``recon ...``).
+
+Why a reconstruction result lives in the simulator package: :mod:`sonarsim.dataset` is the
+one home of every file format of the project (transients, sonar datasets, volumes), so that
+readers such as ``sonarsim info`` and ``sonarsim plot`` understand every file without
+importing :mod:`recon`, and the dependencies keep pointing one way (recon → sonarsim). The
+voxel-centre convention (:func:`voxel_axes`) and the single-voxel rule
+(:func:`voxel_spacing`) live here for the same reason; :mod:`recon.grid` delegates to them.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
