@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -132,16 +133,45 @@ def load_pulse(path: str | os.PathLike, max_samples: int | None = None) -> np.nd
     return arr.astype(np.float64)
 
 
+PULSE_HELP = ("'lfm-20k' (30->10 kHz, 1 ms), 'lfm-10k', 'lfm-5k' (22.5->17.5 kHz), "
+              "'lfm:F0:F1:DUR[:TUKEY]' (Hz, Hz, s, window ratio; default 0.1), "
+              "or a measured pulse FILE.npy sampled at fs")
+
+
+@dataclass(frozen=True)
+class Pulse:
+    """A transmitted pulse ``samples`` [L] at ``fs`` (Hz) and the spec it came from."""
+    samples: np.ndarray
+    fs: float
+    spec: str
+
+
 def pulse_from_spec(spec: str | os.PathLike, fs: float = AIRSAS_FS,
-                    max_samples: int | None = None) -> np.ndarray:
-    """A named pulse ('lfm-20k', ...) or a .npy file path (the CLI's ``--pulse``)."""
-    text = os.fspath(spec)
-    if text.strip().lower() in NAMED_PULSES:
-        return named_pulse(text, fs)
-    if text.lower().endswith(".npy"):
-        return load_pulse(text, max_samples)
-    raise InputError(f"unknown pulse '{text}': expected one of {', '.join(NAMED_PULSES)} "
-                     f"or a .npy file")
+                    max_samples: int | None = None) -> Pulse:
+    """The pulse for a ``--pulse`` spec (see ``PULSE_HELP``), sampled at ``fs`` Hz.
+
+    A named LFM ('lfm-20k', ...), ``lfm:F0:F1:DUR[:TUKEY]`` or a measured ``.npy`` file;
+    ``max_samples`` truncates a measured pulse (the reference keeps the first 100 samples
+    of the measured AirSAS pulses).
+    """
+    text = os.fspath(spec).strip()
+    low = text.lower()
+    if low in NAMED_PULSES:
+        return Pulse(named_pulse(low, fs), float(fs), low)
+    if low.startswith("lfm:"):
+        parts = text.split(":")[1:]
+        if len(parts) not in (3, 4):
+            raise InputError(f"pulse '{text}': expected lfm:F0:F1:DUR or lfm:F0:F1:DUR:TUKEY")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise InputError(f"pulse '{text}': F0, F1, DUR (and TUKEY) must be numbers") from None
+        f0, f1, dur = values[:3]
+        ratio = values[3] if len(values) == 4 else 0.1
+        return Pulse(lfm(f0, f1, dur, fs, window_ratio=ratio), float(fs), text)
+    if low.endswith(".npy"):
+        return Pulse(load_pulse(text, max_samples), float(fs), text)
+    raise InputError(f"unknown pulse '{text}': expected {PULSE_HELP}")
 
 
 # --- analytic signal and matched filter ---------------------------------------------------

@@ -63,53 +63,15 @@ from .errors import FormatError, InputError
 from .geometry import CropWindow, Poses, crop_window
 from .render import DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, aligned_window, iter_render
 from .scene import SceneSpec
-from .signals import (NAMED_PULSES, REFERENCE_PULSE_SAMPLES, fft_upsample, lfm, load_pulse,
-                      named_pulse, noise_sigma)
+from .signals import PULSE_HELP, REFERENCE_PULSE_SAMPLES, Pulse, fft_upsample, noise_sigma
+from .signals import pulse_from_spec as make_pulse   # the name benchmarks/table2.py uses
+from .threads import dr_threads
 
 # Waveforms are energy histograms ⊗ pulse: amplitudes fall as 1/(r_T² r_R²) (the reference's
 # intensity mode, DESIGN §4), unlike measured pressure (∝ 1/(r_T r_R)); docs/formats.md.
 AMPLITUDE_MODEL = "intensity"
 NOISE_STREAM = 0x6E6F6973   # spawn key that separates the noise generators from other uses
 CONVOLVE_BLOCK = 128        # pings per FFT block (bounds the temporary arrays)
-PULSE_HELP = ("'lfm-20k' (30->10 kHz, 1 ms), 'lfm-10k', 'lfm-5k' (22.5->17.5 kHz), "
-              "'lfm:F0:F1:DUR[:TUKEY]' (Hz, Hz, s, window ratio; default 0.1), "
-              "or a measured pulse FILE.npy sampled at fs")
-
-
-# ----------------------------------------------------------------------------- pulses
-
-@dataclass(frozen=True)
-class Pulse:
-    """A transmitted pulse ``samples`` [L] at ``fs`` (Hz) and the spec it came from."""
-    samples: np.ndarray
-    fs: float
-    spec: str
-
-
-def make_pulse(spec: str | os.PathLike, fs: float, max_samples: int | None = None) -> Pulse:
-    """The pulse for a ``--pulse`` spec (see ``PULSE_HELP``), sampled at ``fs`` Hz.
-
-    ``max_samples`` truncates a measured pulse (the reference keeps the first 100 samples
-    of the measured AirSAS pulses).
-    """
-    text = os.fspath(spec).strip()
-    low = text.lower()
-    if low in NAMED_PULSES:
-        return Pulse(named_pulse(low, fs), float(fs), low)
-    if low.startswith("lfm:"):
-        parts = text.split(":")[1:]
-        if len(parts) not in (3, 4):
-            raise InputError(f"pulse '{text}': expected lfm:F0:F1:DUR or lfm:F0:F1:DUR:TUKEY")
-        try:
-            values = [float(p) for p in parts]
-        except ValueError:
-            raise InputError(f"pulse '{text}': F0, F1, DUR (and TUKEY) must be numbers") from None
-        f0, f1, dur = values[:3]
-        ratio = values[3] if len(values) == 4 else 0.1
-        return Pulse(lfm(f0, f1, dur, fs, window_ratio=ratio), float(fs), text)
-    if low.endswith(".npy"):
-        return Pulse(load_pulse(text, max_samples), float(fs), text)
-    raise InputError(f"unknown pulse '{text}': expected {PULSE_HELP}")
 
 
 # ----------------------------------------------------------------------------- signal model
@@ -165,22 +127,6 @@ def ping_noise(seed: int, start: int, stop: int, n_samples: int) -> np.ndarray:
         seq = np.random.SeedSequence(int(seed), spawn_key=(NOISE_STREAM, ping))
         out[row] = np.random.default_rng(seq).standard_normal(n_samples)
     return out
-
-
-@contextlib.contextmanager
-def dr_threads(threads: int | None) -> Iterator[None]:
-    """Run the enclosed Dr.Jit work on ``threads`` threads (None: leave Dr.Jit's setting,
-    all cores unless changed), then restore."""
-    if threads is None:
-        yield
-        return
-    import drjit as dr
-    before = dr.thread_count()
-    dr.set_thread_count(int(threads))
-    try:
-        yield
-    finally:
-        dr.set_thread_count(before)
 
 
 # ----------------------------------------------------------------------------- pipeline

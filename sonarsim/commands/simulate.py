@@ -11,8 +11,8 @@ import argparse
 import sys
 
 from ..errors import InputError
-from .render import (add_render_arguments, add_scene_and_pose_arguments, beams_from_args,
-                     check_common, parity_meta, parity_poses)
+from ._render_common import (add_render_arguments, add_scene_and_pose_arguments,
+                             beams_from_args, check_common, parity_meta, parity_poses)
 
 HELP = "Simulate a sonar dataset (waveforms, pulse, geometry, ground truth) of a scene."
 EPILOG = ("Amplitude model: the waveforms are intensity-mode, as the reference's simulation: "
@@ -23,7 +23,7 @@ EPILOG = ("Amplitude model: the waveforms are intensity-mode, as the reference's
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..simulate import PULSE_HELP
+    from ..signals import PULSE_HELP
     parser.epilog = EPILOG
     add_scene_and_pose_arguments(parser, "output sonar dataset (.h5)")
     s = parser.add_argument_group("signal")
@@ -63,7 +63,8 @@ def parse_bounce_set(text: str | None) -> tuple[int, ...] | None:
 def run(args: argparse.Namespace) -> int:
     from ..geometry import trajectory
     from ..scene import load_scene
-    from ..simulate import SimulationSettings, make_pulse, simulate
+    from ..signals import pulse_from_spec
+    from ..simulate import SimulationSettings, simulate
 
     check_common(args)
     bounce_set = parse_bounce_set(args.bounce_set)
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     spec = load_scene(args.scene)
     poses = parity_poses(args, trajectory(args.poses, box=spec.box))
     settings = SimulationSettings(
-        pulse=make_pulse(args.pulse, args.fs, args.pulse_samples), snr_db=args.snr_db,
+        pulse=pulse_from_spec(args.pulse, args.fs, args.pulse_samples), snr_db=args.snr_db,
         paths_per_pose=args.paths_per_pose, bounces=bounces, bounce_set=bounce_set,
         oversample=args.oversample, sound_speed=args.sound_speed, seed=args.seed,
         beams=beams, keep_transients=args.keep_transients,
