@@ -82,3 +82,33 @@ def test_plugins_depend_on_mitsuba_and_drjit_only():
         if m.startswith("sonarsim.plugins"):
             bad = {i for i in imports_of(m) if i.split(".")[0] not in allowed}
             assert bad == set(), (m, bad)
+
+
+def test_wheel_ships_plugins_and_scenes_and_works_installed(tmp_path):
+    """A non-editable install from the wheel finds its scenes and registers its plugins."""
+    import subprocess
+    import zipfile
+
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                        "-q", "-w", str(tmp_path / "dist"), str(ROOT)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("sonarsim-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert "sonarsim/plugins/sonar_transient.py" in names
+    assert {f"sonarsim/scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")} <= names
+    assert not any(n.startswith(("plugins/", "scenes/")) for n in names)   # no top-level packages
+
+    site = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target",
+                        str(site), str(wheel)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    code = ("import sonarsim, sonarsim.scene as s; from sonarsim import runtime\n"
+            "mi = runtime.mitsuba(); i = mi.load_dict({'type': 'sonar_transient'})\n"
+            "print(sonarsim.__file__); print(s.resolve_scene_path('sphere')); print(type(i).__name__)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                       env={**__import__("os").environ, "PYTHONPATH": str(site)}, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    where, scene, cls = r.stdout.split()
+    assert where.startswith(str(site)) and scene.startswith(str(site))
+    assert cls == "SonarTransientIntegrator"
