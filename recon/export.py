@@ -15,7 +15,7 @@ Decisions (see docs/evaluation.md):
   Vertices are mapped to world coordinates as ``lo + (p - 1) * spacing`` with
   ``spacing = (hi - lo) / (n - 1)`` and ``p`` the padded index. The reference maps with
   ``/n`` instead of ``/(n - 1)``, keeps the padding offset and swaps x/y
-  (REFERENCE_SPEC §7.1); those shift and stretch its meshes by one to two voxels.
+  (reference code evaluate/); those shift and stretch its meshes by one to two voxels.
 * **Single voxel along an axis.** Its spacing is undefined; the smallest spacing of the
   other axes is used (the voxel is treated as a cube). A 1x1x1 volume has no spacing at
   all and raises :class:`InputError`.

@@ -4,7 +4,8 @@ Convention (DESIGN §3): arrays are (nx, ny, nz) in x, y, z order; voxel centres
 each axis are ``linspace(lo, hi, n)`` with both endpoints included, and a single voxel
 along an axis sits at ``lo``. Bounds are in metres, shape ``[3, 2]`` = [[x0,x1],[y0,y1],[z0,z1]].
 
-Unlike the reference (meshgrid 'xy' indexing → (Y, X, Z) voxel order, REFERENCE_SPEC §1.5)
+Unlike the reference (meshgrid 'xy' indexing → (Y, X, Z) voxel order, reference code
+``geometry.create_voxels``)
 the flattened voxel list here is C-order over (nx, ny, nz): index = (ix*ny + iy)*nz + iz.
 """
 from __future__ import annotations

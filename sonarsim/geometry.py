@@ -4,8 +4,10 @@ All positions are float64 NumPy arrays in metres, in the world frame of
 docs/frames.md: z up, the turntable plane is z = 0, the turntable rotates about +z.
 Distances called ``dist`` are *round-trip* path lengths |x - tx| + |x - rx|.
 
-References: REFERENCE_SPEC §1.1 (rig constants, pose model), §1.2 (trajectories),
-§1.6 step 5 (crop window).
+Sources (docs/references.md): the rig constants from the AirSAS ``SysParams.csv``; the
+trajectories from Reed et al. 2023 (supplemental) and the reference code
+(``airsas/utils.py::resample_cylindrical``); the crop window from the reference code
+(``sas_utils.crop_wfm``).
 """
 from __future__ import annotations
 
@@ -21,18 +23,18 @@ import numpy as np
 from .atomic import atomic_path
 from .errors import FormatError, InputError
 
-# --- Rig constants (REFERENCE_SPEC §1.1, from the AirSAS SysParams.csv), rig frame, metres.
+# --- Rig constants (from the AirSAS SysParams.csv), rig frame, metres.
 TX_RIG = np.array([0.0, -0.8485, 0.285])      # speaker
 RX_RIG = np.array([0.0, -0.8615, 0.247])      # microphone 1 (the one used)
 MIC2_RIG = np.array([0.0, -0.8615, 0.216])    # microphone 2 (unused by the reference)
 RIG_CENTER = np.array([0.0, 0.0, 0.1775])     # rig-frame point that becomes the world origin
 
-# --- The reference cylindrical scan (REFERENCE_SPEC §1.2): 360 angles x 150 heights.
+# --- The reference cylindrical scan (Reed et al. 2023 supp.): 360 angles x 150 heights.
 CYLINDRICAL_ANGLES = 360
 CYLINDRICAL_HEIGHTS = 150
 HEIGHT_STEP = 0.005          # metres between height levels
 FIRST_HEIGHT = 0.005         # metres, height of level 0
-HELIX_PITCH_LEVELS = 20      # height levels per helix turn (REFERENCE_SPEC §1.2)
+HELIX_PITCH_LEVELS = 20      # height levels per helix turn (reference code)
 POSE_HEADER = ("tx_x", "tx_y", "tx_z", "rx_x", "rx_y", "rx_z")
 BORESIGHT_HEADER = ("b_x", "b_y", "b_z")
 TWO_BORESIGHT_HEADER = ("btx_x", "btx_y", "btx_z", "brx_x", "brx_y", "brx_z")
@@ -128,8 +130,8 @@ class SceneBox:
         return f"SceneBox(lo={self.lo.tolist()}, hi={self.hi.tolist()})"
 
 
-SIM_BOX = SceneBox((-0.2, -0.2, 0.0), (0.2, 0.2, 0.3))               # REFERENCE_SPEC §1.5
-AIRSAS_REAL_BOX = SceneBox((-0.125, -0.125, 0.0), (0.125, 0.125, 0.2))  # REFERENCE_SPEC §1.5
+SIM_BOX = SceneBox((-0.2, -0.2, 0.0), (0.2, 0.2, 0.3))               # reference code geometry.py
+AIRSAS_REAL_BOX = SceneBox((-0.125, -0.125, 0.0), (0.125, 0.125, 0.2))  # reference code geometry.py
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,7 +251,7 @@ def cylindrical_grid(n_angles: int = CYLINDRICAL_ANGLES, n_heights: int = CYLIND
     """(angles_deg [A·H], heights_m [A·H]) of a cylindrical scan, height-major.
 
     Angles are ``k·360/A`` degrees, heights ``FIRST_HEIGHT + j·HEIGHT_STEP``; ping
-    ``j·A + k`` is angle k at height j (REFERENCE_SPEC §1.2).
+    ``j·A + k`` is angle k at height j (as the reference code orders them).
     """
     if n_angles < 1 or n_heights < 1:
         raise InputError(f"cylindrical scan needs >= 1 angle and height, got {n_angles}x{n_heights}")
@@ -260,7 +262,8 @@ def cylindrical_grid(n_angles: int = CYLINDRICAL_ANGLES, n_heights: int = CYLIND
 
 def helical_indices(n_angles: int = CYLINDRICAL_ANGLES, n_heights: int = CYLINDRICAL_HEIGHTS,
                     pitch_levels: int = HELIX_PITCH_LEVELS) -> np.ndarray:
-    """Indices into the cylindrical grid that approximate a helix (REFERENCE_SPEC §1.2).
+    """Indices into the cylindrical grid that approximate a helix (reference code
+    ``airsas/utils.py::resample_cylindrical``).
 
     The helix rises ``pitch_levels`` height levels per turn and is sampled at
     ``n_angles · n_heights`` points over ceil(height span / pitch) turns. Each point snaps
@@ -456,7 +459,7 @@ class CropWindow:
 
 def crop_window(poses: Poses, box: SceneBox, sound_speed: float, fs: float,
                 pulse_samples: int = 100, pad: float = 0.05) -> CropWindow:
-    """Sample window that holds every echo from ``box`` (REFERENCE_SPEC §1.6 step 5).
+    """Sample window that holds every echo from ``box`` (reference code ``sas_utils.crop_wfm``).
 
     Over all poses and the 8 box corners, the round-trip distance range is widened by
     ``pad`` (m) plus the pulse length ``pulse_samples·c/fs`` (the reference uses

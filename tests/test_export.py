@@ -12,7 +12,7 @@ from recon import export
 from sonarsim.errors import InputError
 
 # Anisotropic, off-centre grid: catches swapped axes, /n instead of /(n-1), and a
-# padding offset left in the vertex mapping (REFERENCE_SPEC §7.1 quirks).
+# padding offset left in the vertex mapping (reference code evaluate/ quirks).
 BOUNDS = np.array([[-0.1, 0.1], [-0.05, 0.15], [0.0, 0.3]])
 SHAPE = (41, 31, 51)
 CENTRE = np.array([0.01, 0.04, 0.12])

@@ -39,7 +39,7 @@ def test_pose_formula_by_hand(angle, height, tx, rx):
 
 
 def test_renderer_config_pose():
-    # REFERENCE_SPEC 1.1: the renderer's simulated first pose
+    # the reference renderer's simulated first pose
     p = g.trajectory("cylindrical")[0]
     np.testing.assert_allclose(p.tx[0], (0, -0.8485, 0.1125), atol=1e-12)
     np.testing.assert_allclose(p.rx[0], (0, -0.8615, 0.0745), atol=1e-12)
@@ -183,7 +183,7 @@ def test_poses_validation_and_indexing(full_scan):
 
 
 def test_crop_window_matches_reference(full_scan):
-    # REFERENCE_SPEC 1.2: the renderer config of the simulated scenes
+    # the reference renderer's config of the simulated scenes
     win = g.crop_window(full_scan, g.SIM_BOX, 344.973, 100e3)
     assert (win.min_sample, win.num_samples) == (217, 718)
     assert win.min_dist == pytest.approx(0.748591648507111, abs=1e-6)
@@ -210,5 +210,5 @@ def test_crop_window_contains_every_echo():
 
 
 def test_real_airsas_crop_is_608_samples(full_scan):
-    # REFERENCE_SPEC 1.2: the real bunny_20k box, all 150 heights, c about 345 m/s -> 608
+    # the reference's real bunny_20k box, all 150 heights, c about 345 m/s -> 608
     assert g.crop_window(full_scan, g.AIRSAS_REAL_BOX, 345.0, 100e3).num_samples == 608

@@ -52,7 +52,7 @@ def test_named_pulses_match_reference_sweeps(name, f0, f1):
 
 
 def test_lfm_equals_reference_construction():
-    # REFERENCE_SPEC 1.4: chirp on t = linspace(0, T - 1/fs, T·fs), times tukey(L, 0.1).
+    # reference code sas_utils.gen_real_lfm: chirp on t = linspace(0, T - 1/fs, T·fs), times tukey(L, 0.1).
     n = 100
     t = np.linspace(0, 1e-3 - 1 / FS, n)
     expected = scipy.signal.chirp(t, 30e3, 1e-3, 10e3) * scipy.signal.windows.tukey(n, 0.1)
@@ -159,7 +159,7 @@ def test_sound_speeds():
     assert signals.sound_speed_air(21.6) == pytest.approx(344.36)
     np.testing.assert_allclose(signals.sound_speed_air(np.array([10.0, 20.0])), [337.4, 343.4])
     assert signals.sound_speed_water(10.0) == pytest.approx(1404.3 + 47 - 4)
-    t_f55 = (55 - 32) * 0.5556                        # SVSS default, REFERENCE_SPEC 8.1
+    t_f55 = (55 - 32) * 0.5556                        # SVSS default, reference code svss/
     assert 1450 < signals.sound_speed_water(t_f55) < 1460
     with pytest.raises(InputError):
         signals.sound_speed_air(float("nan"))
