@@ -4,6 +4,11 @@ The complex measurement of a ping is the matched-filtered analytic signal (REFER
 §1.6 step 4 / §3.5), computed with :func:`sonarsim.signals.matched_filter` — the one
 implementation in the project. Sample k of a dataset waveform is at time
 ``(start_sample + k) / fs`` after transmission, i.e. at round-trip path ``c·t``.
+
+A dataset written by ``recon deconvolve`` (``waveform_kind == 'deconvolved_analytic'``)
+already holds complex, pulse-compressed analytic signals: :func:`matched_filtered`,
+:func:`analytic_waveforms` and :func:`complex_signals` return them unchanged (no second
+matched filter), so every solver reads both kinds of dataset.
 """
 from __future__ import annotations
 
@@ -44,13 +49,35 @@ def sound_speeds(dataset, per_ping: bool = True) -> np.ndarray:
     return np.full(n, float(dataset.sound_speed))
 
 
+DECONVOLVED = "deconvolved_analytic"
+
+
+def is_deconvolved(dataset) -> bool:
+    """True if the dataset's waveforms are deconvolved analytic signals (``recon deconvolve``)."""
+    return getattr(dataset, "waveform_kind", "real") == DECONVOLVED
+
+
+def _stored(dataset, pings) -> np.ndarray:
+    w = dataset.waveforms if pings is None else dataset.waveforms[pings]
+    return np.asarray(w, dtype=np.complex64)
+
+
+def complex_signals(dataset, pings=None) -> np.ndarray:
+    """The complex measurement [n, T] complex64 a solver fits: the stored deconvolved analytic
+    signal for a deconvolved dataset, else the matched-filtered analytic signal."""
+    return matched_filtered(dataset, pings)
+
+
 def matched_filtered(dataset, pings=None) -> np.ndarray:
     """Matched-filtered analytic signal [n, T] complex64 of the selected pings (all by default).
 
     Uses the *linear* (zero-padded) correlation rather than the reference's circular one,
-    so echoes near the end of the cropped window do not wrap onto its start.
+    so echoes near the end of the cropped window do not wrap onto its start. A deconvolved
+    dataset's waveforms are already pulse-compressed and are returned as stored.
     """
     from sonarsim import signals
+    if is_deconvolved(dataset):
+        return _stored(dataset, pings)
     w = np.asarray(dataset.waveforms if pings is None else dataset.waveforms[pings],
                    dtype=np.float64)
     mf = signals.matched_filter(w, np.asarray(dataset.pulse, dtype=np.float64), axis=-1,
@@ -59,8 +86,11 @@ def matched_filtered(dataset, pings=None) -> np.ndarray:
 
 
 def analytic_waveforms(dataset, pings=None) -> np.ndarray:
-    """Analytic signal of the raw waveforms [n, T] complex64 (no pulse compression)."""
+    """Analytic signal of the raw waveforms [n, T] complex64 (no pulse compression); a
+    deconvolved dataset's waveforms are already analytic and are returned as stored."""
     from sonarsim import signals
+    if is_deconvolved(dataset):
+        return _stored(dataset, pings)
     w = np.asarray(dataset.waveforms if pings is None else dataset.waveforms[pings],
                    dtype=np.float64)
     return np.asarray(signals.analytic(w, axis=-1), dtype=np.complex64)

@@ -48,8 +48,9 @@ def as_array(name: str, value: Any, pattern: tuple, dtype, dims: dict, *,
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: not an array ({exc})") from None
     if arr.dtype.kind not in kinds:
-        raise InputError(f"{name} has dtype {arr.dtype}, expected "
-                         f"{'complex or real' if 'c' in kinds else 'real'} numbers")
+        want = ("complex" if kinds == "c" else
+                "complex or real" if "c" in kinds else "real")
+        raise InputError(f"{name} has dtype {arr.dtype}, expected {want} numbers")
     err = shape_error(arr.shape, pattern, dims, name)
     if err:
         raise InputError(f"{name} has shape {arr.shape}, expected {err}")

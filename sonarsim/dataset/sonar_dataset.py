@@ -15,7 +15,14 @@ from .reader import Reader, open_checked
 from .transients import Transients
 
 # Fixed-schema root attributes of a dataset file.
-DATASET_ATTRS = ("fs", "sound_speed", "source", "start_sample", "snr_db", "seed")
+DATASET_ATTRS = ("fs", "sound_speed", "source", "start_sample", "snr_db", "seed",
+                 "waveform_kind")
+
+# What ``waveforms`` holds (root attribute ``waveform_kind``; absent = 'real'):
+# 'real': float32 received waveforms (the pulse still in them);
+# 'deconvolved_analytic': complex64 analytic signals of pulse-deconvolved reflectivity
+# (``recon deconvolve``), already pulse-compressed: solvers use them as they are.
+WAVEFORM_KINDS = {"real": (np.float32, "fiu"), "deconvolved_analytic": (np.complex64, "c")}
 
 
 @dataclass(eq=False)
@@ -23,7 +30,8 @@ class SonarDataset:
     """Time-domain sonar measurements with their geometry.
 
     waveforms: float32 [N, T]; sample k of ping i is at time (start_sample + k) / fs
-        after transmission (group delay removed).
+        after transmission (group delay removed). complex64 when ``waveform_kind`` is
+        'deconvolved_analytic' (see WAVEFORM_KINDS).
     tx, rx: float64 [N, 3] positions (m); boresight: float64 [N, 3] unit transmitter
         boresight (also the receiver's unless rx_boresight [N, 3] is given).
     pulse: float64 [L], the transmitted pulse sampled at fs.
@@ -52,10 +60,16 @@ class SonarDataset:
     transients: Transients | None = None
     meta: dict = field(default_factory=dict)
     rx_boresight: np.ndarray | None = None
+    waveform_kind: str = "real"
 
     def __post_init__(self):
         dims: dict = {}
-        self.waveforms = as_array("waveforms", self.waveforms, ("N", "T"), np.float32, dims)
+        if self.waveform_kind not in WAVEFORM_KINDS:
+            raise InputError(f"waveform_kind must be one of {', '.join(WAVEFORM_KINDS)}, "
+                             f"got {self.waveform_kind!r}")
+        dtype, kinds = WAVEFORM_KINDS[self.waveform_kind]
+        self.waveforms = as_array("waveforms", self.waveforms, ("N", "T"), dtype, dims,
+                                  kinds=kinds)
         if self.waveforms.shape[1] < 1:
             raise InputError("waveforms has no samples (shape "
                              f"{self.waveforms.shape}), expected at least one")
@@ -145,7 +159,8 @@ class SonarDataset:
             temperatures=pick(self.temperatures), gt_vertices=self.gt_vertices,
             gt_faces=self.gt_faces, snr_db=self.snr_db, seed=self.seed,
             transients=None if self.transients is None else self.transients.select(indices),
-            meta=dict(self.meta), rx_boresight=pick(self.rx_boresight))
+            meta=dict(self.meta), rx_boresight=pick(self.rx_boresight),
+            waveform_kind=self.waveform_kind)
 
     def __repr__(self) -> str:
         return (f"SonarDataset(source={self.source!r}, N={self.n_pings}, T={self.n_samples}, "
@@ -199,8 +214,13 @@ class SonarDataset:
     def _read_fields(rd: Reader, load: bool = True) -> dict:
         """Constructor arguments; ``transients`` is a fields dict (or None), not an object."""
         ds = rd.dataset
+        kind = rd.attr("", "waveform_kind", "str", optional=True) or "real"
+        if kind not in WAVEFORM_KINDS:
+            rd.fail(f"attribute 'waveform_kind' is {kind!r}, expected one of "
+                    f"{', '.join(WAVEFORM_KINDS)}")
         fields_ = {
-            "waveforms": ds("waveforms", ("N", "T"), "f", dtype=np.float32, load=load),
+            "waveforms": ds("waveforms", ("N", "T"), WAVEFORM_KINDS[kind][1],
+                            dtype=WAVEFORM_KINDS[kind][0], load=load),
             "tx": ds("pings/tx", ("N", 3), "f"),
             "rx": ds("pings/rx", ("N", 3), "f"),
             "boresight": ds("pings/boresight", ("N", 3), "f"),
@@ -217,6 +237,7 @@ class SonarDataset:
             "seed": rd.attr("", "seed", "int", optional=True),
             "meta": rd.attr_dict("", DATASET_ATTRS),
             "transients": None,
+            "waveform_kind": kind,
         }
         if (fields_["gt_vertices"] is None) != (fields_["gt_faces"] is None):
             rd.fail("dataset 'gt/vertices' and 'gt/faces' must both be present or both absent")

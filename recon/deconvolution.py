@@ -1,0 +1,437 @@
+"""Pulse deconvolution of sonar waveforms (step 1 of Reed et al. 2023's method).
+
+Two methods turn the real waveforms s [N, T] of a dataset into deconvolved *analytic*
+signals (complex64 [N, T]) that reconstruction solvers use directly, without a matched
+filter (``waveform_kind = 'deconvolved_analytic'``, see docs/formats.md):
+
+* ``'wiener'``: frequency-domain Wiener deconvolution W = S·P*/(|P|² + λ) with λ = σ²/σ_w²
+  estimated from the data (white-noise variance σ² from the spectrum outside the pulse band,
+  reflectivity variance σ_w² from the spectrum inside it); linear (zero-padded), so nothing
+  wraps around. A linear method cannot reach beyond the pulse band: its resolution is the
+  matched filter's.
+* ``'inr'``: the reference's neural deconvolution (reference code
+  ``inr_reconstruction/deconvolve_measurements.py``): per batch of pings, a 2-D hash grid
+  + MLP over (range, ping) ∈ [0, 1]² (:mod:`drjit.nn`, tensor/GEMM mode, float32) outputs a
+  real reflectivity w; the estimated waveform is ŝ = Re Σ_k w_k·p̂(t − k/fs) = (w ∗ p)(t)
+  (p̂ the analytic pulse, p = Re p̂); loss = MSE(ŝ, s/max|s|) + λ_sp·mean|w|
+  + λ_ph·(mean|Δ cos φ| + mean|Δ sin φ|) with φ = angle(analytic(ŝ)); Adam, full batch.
+  The sparsity prior lets it resolve reflectors closer than the pulse bandwidth allows.
+
+Either way the output sample k is the reflectivity of an echo whose pulse starts at sample k,
+the convention of the matched filter, so both kinds of dataset share the time axis
+``(start_sample + k)/fs``. Output = analytic(w) (the reference's step before NBP).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import scipy.fft
+
+from sonarsim.errors import InputError
+
+METHODS = ("wiener", "inr")
+DECONVOLVED = "deconvolved_analytic"
+OUT_OF_BAND_DB = -40.0      # |P|² below this (re its peak): out of band, noise only
+IN_BAND_DB = -6.0           # |P|² above this: in band, used for the reflectivity power
+_ROWS_PER_BLOCK = 4096
+
+
+# ---- shared FFT helpers --------------------------------------------------------------------
+
+def _n_fft(n_t: int, n_p: int) -> int:
+    return scipy.fft.next_fast_len(n_t + n_p - 1, real=True)
+
+
+def _analytic_weights(n: int) -> np.ndarray:
+    """rfft-bin weights of the analytic signal: 1 at DC (and Nyquist), 2 elsewhere."""
+    w = np.full(n // 2 + 1, 2.0)
+    w[0] = 1.0
+    if n % 2 == 0:
+        w[-1] = 1.0
+    return w
+
+
+def _half_to_analytic(half: np.ndarray, n: int, n_keep: int) -> np.ndarray:
+    """Analytic signal [.., n_keep] from the rfft ``half`` [.., n//2+1] of a real signal."""
+    full = np.zeros(half.shape[:-1] + (n,), dtype=np.complex128)
+    full[..., :half.shape[-1]] = half * _analytic_weights(n)
+    return scipy.fft.ifft(full, axis=-1)[..., :n_keep]
+
+
+def analytic(x: np.ndarray) -> np.ndarray:
+    """Analytic signal of real rows x [.., T] (periodic, like scipy.signal.hilbert)."""
+    n = x.shape[-1]
+    return _half_to_analytic(scipy.fft.rfft(x, axis=-1), n, n)
+
+
+def _check_inputs(waveforms, pulse) -> tuple[np.ndarray, np.ndarray]:
+    s = np.asarray(waveforms)
+    p = np.asarray(pulse, dtype=np.float64)
+    if s.ndim != 2 or s.shape[0] == 0 or s.shape[1] == 0:
+        raise InputError(f"waveforms: expected [N, T] with N, T >= 1, got shape {s.shape}")
+    if np.iscomplexobj(s):
+        raise InputError("waveforms are complex: deconvolution needs the real received "
+                         "waveforms (is this dataset already deconvolved?)")
+    if p.ndim != 1 or p.size == 0 or not np.all(np.isfinite(p)) or not np.any(p):
+        raise InputError("pulse: expected a non-zero finite 1-D array")
+    if not np.all(np.isfinite(s)):
+        raise InputError("waveforms contain NaN or infinity")
+    return s, p
+
+
+# ---- Wiener --------------------------------------------------------------------------------
+
+def noise_and_signal_power(waveforms, pulse) -> tuple[float, float]:
+    """(σ², σ_w²): white-noise variance per sample and reflectivity variance per sample.
+
+    With s = w ∗ p + n, n white of variance σ² and w white of variance σ_w², the DFT over
+    the T recorded samples has E|S(f)|² = T·(σ_w²·|P(f)|² + σ²). σ² is the mean |S|²/T over
+    the bins where |P|² is below OUT_OF_BAND_DB of its peak; σ_w² the mean of
+    (|S|²/T − σ²)/|P|² over the bins within IN_BAND_DB of the peak. Without out-of-band bins
+    (a pulse as wide as the band), σ² falls back to the median-absolute-deviation estimate
+    (median |s| / 0.6745)², which overestimates it where echoes fill the record.
+    """
+    s, p = _check_inputs(waveforms, pulse)
+    n_t = s.shape[1]
+    n = _n_fft(n_t, p.size)
+    p2 = np.abs(scipy.fft.rfft(p, n=n)) ** 2
+    out_band = p2 < p2.max() * 10 ** (OUT_OF_BAND_DB / 10)
+    in_band = p2 >= p2.max() * 10 ** (IN_BAND_DB / 10)
+    spec = np.zeros(p2.size)
+    for b in range(0, s.shape[0], _ROWS_PER_BLOCK):
+        spec += (np.abs(scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1)) ** 2).sum(0)
+    spec /= s.shape[0] * n_t
+    if out_band.sum() >= max(4, 0.05 * p2.size):
+        sigma2 = float(spec[out_band].mean())
+    else:
+        sigma2 = float((np.median(np.abs(s)) / 0.6745) ** 2)
+    sigma_w2 = float(np.mean(np.maximum(spec[in_band] - sigma2, 0.0) / p2[in_band]))
+    return sigma2, sigma_w2
+
+
+def wiener(waveforms, pulse, lam: float | None = None) -> tuple[np.ndarray, dict]:
+    """Wiener-deconvolved analytic signals [N, T] complex64 and the settings used.
+
+    W(f) = S(f)·P*(f)/(|P(f)|² + λ) on the zero-padded (linear) spectrum, output the analytic
+    signal of w cropped to T samples. λ (units of |P|², i.e. of pulse² per sample) defaults
+    to σ²/σ_w² from :func:`noise_and_signal_power` — the MMSE filter for white reflectivity
+    in white noise (the reference's ``--wiener_deconvolution`` takes λ by hand).
+    """
+    s, p = _check_inputs(waveforms, pulse)
+    n_pings, n_t = s.shape
+    info = {"method": "wiener"}
+    if lam is None:
+        sigma2, sigma_w2 = noise_and_signal_power(s, p)
+        if not sigma_w2 > 0:
+            raise InputError("waveforms: no signal above the noise in the pulse band, "
+                             "nothing to deconvolve")
+        lam = sigma2 / sigma_w2
+        info.update(noise_variance=sigma2, reflectivity_variance=sigma_w2,
+                    lambda_source="noise/reflectivity power (MMSE)")
+    else:
+        lam = float(lam)
+        if not (math.isfinite(lam) and lam > 0):
+            raise InputError(f"wiener lambda: must be positive and finite, got {lam}")
+        info["lambda_source"] = "given"
+    n = _n_fft(n_t, p.size)
+    P = scipy.fft.rfft(p, n=n)
+    if not lam > 1e-12 * float(np.max(np.abs(P) ** 2)):
+        lam = 1e-12 * float(np.max(np.abs(P) ** 2))
+    H = np.conj(P) / (np.abs(P) ** 2 + lam)
+    out = np.empty((n_pings, n_t), dtype=np.complex64)
+    for b in range(0, n_pings, _ROWS_PER_BLOCK):
+        half = scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1) * H
+        out[b:b + _ROWS_PER_BLOCK] = _half_to_analytic(half, n, n_t)
+    info["lambda"] = float(lam)
+    info["lambda_relative_to_peak_P2"] = float(lam / np.max(np.abs(P) ** 2))
+    return out, info
+
+
+# ---- INR: loss and its gradient (NumPy) ---------------------------------------------------
+
+def convolve(w: np.ndarray, pulse: np.ndarray) -> np.ndarray:
+    """ŝ = (w ∗ p)[.., :T]: linear convolution of rows w [.., T] with the pulse, cropped."""
+    n_t = w.shape[-1]
+    n = _n_fft(n_t, pulse.size)
+    return scipy.fft.irfft(scipy.fft.rfft(w, n=n, axis=-1) * scipy.fft.rfft(pulse, n=n),
+                           n=n, axis=-1)[..., :n_t]
+
+
+def correlate(g: np.ndarray, pulse: np.ndarray) -> np.ndarray:
+    """The adjoint of :func:`convolve`: (Σ_j p[j]·g[k + j]) for k < T."""
+    n_t = g.shape[-1]
+    n = _n_fft(n_t, pulse.size)
+    return scipy.fft.irfft(scipy.fft.rfft(g, n=n, axis=-1) *
+                           np.conj(scipy.fft.rfft(pulse, n=n)), n=n, axis=-1)[..., :n_t]
+
+
+def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: float,
+             phase: float, eps: float = 1e-6) -> tuple[float, dict, np.ndarray]:
+    """Loss of the reference's deconvolution (REFERENCE_SPEC-equivalent: reference code
+    ``deconvolve_measurements.py``) and its gradient with respect to w.
+
+    w, target: [P, T] real (target normalised to max |s| = 1). ŝ = convolve(w, p);
+    L = mean((ŝ − s)²) + sparsity·mean|w| + phase·(mean|Δ_t cos φ| + mean|Δ_t sin φ|),
+    φ = angle(analytic(ŝ)), Δ_t the difference of neighbouring samples. The unit phasor
+    a/|a| uses |a| regularised to sqrt(|a|² + (eps·max|a|)²).
+    Returns (L, {'mse', 'sparsity', 'phase'}, dL/dw [P, T] float64).
+    """
+    w = np.asarray(w, dtype=np.float64)
+    shat = convolve(w, pulse)
+    r = shat - target
+    m = w.size
+    mse = float(np.mean(r ** 2))
+    sp = float(np.mean(np.abs(w)))
+    g_s = 2.0 * r / m
+    ph = 0.0
+    if phase > 0:
+        a = analytic(shat)
+        mag = np.sqrt(np.abs(a) ** 2 + (eps * max(float(np.abs(a).max()), 1e-30)) ** 2)
+        u = a / mag
+        d_re, d_im = np.diff(u.real, axis=-1), np.diff(u.imag, axis=-1)
+        m_d = d_re.size
+        ph = float(np.mean(np.abs(d_re)) + np.mean(np.abs(d_im)))
+        g_u = np.zeros_like(u)
+        for d, unit in ((d_re, 1.0), (d_im, 1j)):
+            sg = np.sign(d) / m_d
+            g_u[..., 1:] += unit * sg
+            g_u[..., :-1] -= unit * sg
+        # u = a/|a|: the gradient w.r.t. a is the tangential part of g_u over |a|.
+        g_a = (g_u - u * np.real(np.conj(u) * g_u)) / mag
+        # a = analytic(ŝ) is self-adjoint as a complex operator: dL/dŝ = Re analytic(g_a).
+        n_t = g_a.shape[-1]
+        full = scipy.fft.fft(g_a, axis=-1)
+        h = np.zeros(n_t)
+        h[0] = 1.0
+        h[1:(n_t + 1) // 2] = 2.0
+        if n_t % 2 == 0:
+            h[n_t // 2] = 1.0
+        g_s = g_s + phase * np.real(scipy.fft.ifft(full * h, axis=-1))
+    g_w = correlate(g_s, pulse) + sparsity * np.sign(w) / m
+    loss = mse + sparsity * sp + phase * ph
+    return loss, {"mse": mse, "sparsity": sp, "phase": ph}, g_w
+
+
+# ---- INR: the network ----------------------------------------------------------------------
+
+@dataclass
+class INRSettings:
+    """Sizes and weights of the INR deconvolution (defaults: see docs/reconstruction.md).
+
+    The reference (AirSAS): 360 pings per INR, 20 hash levels × 2 features, 2^15 entries per
+    level, base resolution 16, scale 1.5, MLP 128 × 3 hidden, lr 1e-3, 1000 iterations,
+    sparsity 1e-1, phase 1e-4. The CPU defaults keep the encoding and the loss weights and
+    use a 32-wide, 2-hidden MLP with a higher learning rate and fewer iterations.
+    """
+
+    pings_per_inr: int = 360
+    iterations: int = 300
+    lr: float = 1e-2
+    lr_final: float = 1e-3          # exponential decay from lr to lr_final over the run
+    sparsity: float = 1e-1
+    phase: float = 1e-4
+    n_levels: int = 16
+    features_per_level: int = 2
+    log2_hashmap_size: int = 15
+    base_resolution: int = 16
+    per_level_scale: float = 1.5
+    width: int = 32
+    hidden_layers: int = 2
+    seed: int = 0
+
+    def validate(self) -> None:
+        for name in ("pings_per_inr", "iterations", "n_levels", "features_per_level",
+                     "log2_hashmap_size", "base_resolution", "width", "hidden_layers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (
+                    0 if name == "hidden_layers" else 1):
+                raise InputError(f"inr {name}: must be a positive integer, got {v!r}")
+        for name in ("lr", "lr_final", "per_level_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputError(f"inr {name}: must be positive, got {v!r}")
+        for name in ("sparsity", "phase"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise InputError(f"inr {name}: must be >= 0, got {v!r}")
+        if self.log2_hashmap_size > 24:
+            raise InputError(f"inr log2_hashmap_size: at most 24, got {self.log2_hashmap_size}")
+
+
+class _Field:
+    """A 2-D hash grid + MLP w(range, ping) on drjit.nn, with its Adam optimiser."""
+
+    def __init__(self, st: INRSettings, seed: int):
+        import drjit as dr
+        import drjit.nn as nn
+        from drjit.opt import Adam
+        from ._jit import jit
+        m = jit()
+        self.dr, self.m = dr, m
+        rng = dr.rng(seed=seed)
+        self.enc = nn.HashGridEncoding(m.Float, 2, n_levels=st.n_levels,
+                                       n_features_per_level=st.features_per_level,
+                                       hashmap_size=2 ** st.log2_hashmap_size,
+                                       base_resolution=st.base_resolution,
+                                       per_level_scale=st.per_level_scale, rng=rng)
+        layers = []
+        for _ in range(st.hidden_layers):
+            layers += [nn.Linear(-1, st.width, bias=False), nn.ReLU()]
+        layers.append(nn.Linear(-1, 1, bias=False))
+        self.net = nn.Sequential(*layers).alloc(m.TensorXf, st.n_levels * st.features_per_level,
+                                                rng=rng)
+        # A Python-float learning rate: Adam turns it into an opaque value itself. (An
+        # array learning rate is multiplied in place by Adam's debiasing factor in drjit
+        # 1.5.0, so it shrinks geometrically.)
+        self.opt = Adam(lr=float(st.lr))
+        self.opt.update(self.net)
+        self.opt["grid"] = self.enc.data
+
+    def __call__(self, coords):
+        for k in self.net.keys():
+            self.net[k] = self.opt[k]
+        self.enc.data = self.opt["grid"]
+        feats = self.enc(coords)
+        y = self.net(self.m.TensorXf(feats))
+        return y.array
+
+    def set_lr(self, lr: float) -> None:
+        self.opt.set_learning_rate(float(lr))
+
+
+def _coords(m, n_pings: int, n_t: int):
+    """(range, ping) ∈ [0, 1]² of every sample, ping-major, as a Dr.Jit Array2f."""
+    r = np.linspace(0.0, 1.0, n_t, dtype=np.float32)
+    q = np.linspace(0.0, 1.0, n_pings, dtype=np.float32) if n_pings > 1 else np.zeros(1, np.float32)
+    rr, qq = np.meshgrid(r, q)
+    return m.Array2f(m.Float(rr.ravel()), m.Float(qq.ravel()))
+
+
+def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
+              on_iteration=None) -> tuple[np.ndarray, list[float]]:
+    """Fit one INR to ``target`` [P, T] (normalised); returns (w [P, T] float32, losses)."""
+    dr = None
+    field_ = _Field(st, seed)
+    dr, m = field_.dr, field_.m
+    coords = _coords(m, *target.shape)
+    losses = []
+    decay = (st.lr_final / st.lr) ** (1.0 / max(st.iterations - 1, 1))
+    w_np = None
+    for it in range(st.iterations):
+        field_.set_lr(st.lr * decay ** it)
+        w = field_(coords)
+        w_np = w.numpy().reshape(target.shape)
+        loss, parts, g = inr_loss(w_np, target, pulse, st.sparsity, st.phase)
+        if not math.isfinite(loss):
+            raise InputError(f"inr: loss became {loss} at iteration {it}; lower --lr")
+        losses.append(loss)
+        dr.backward(dr.sum(w * m.Float(g.ravel().astype(np.float32))))
+        field_.opt.step()
+        if on_iteration is not None:
+            on_iteration(loss, parts)
+    w = field_(coords)
+    w_np = w.numpy().reshape(target.shape).astype(np.float32)
+    return w_np, losses
+
+
+def inr(waveforms, pulse, settings: INRSettings | None = None, progress: bool = True
+        ) -> tuple[np.ndarray, dict]:
+    """INR-deconvolved analytic signals [N, T] complex64 and a summary (losses per batch).
+
+    Pings are split into consecutive batches of ``pings_per_inr``; each gets its own network
+    and optimiser (seeded ``seed + batch index``). The target is s / max|s| over the whole
+    dataset (the reference's global normalisation); the output is analytic(w·max|s|), so
+    its amplitude is a reflectivity in the waveform's units per unit pulse amplitude.
+    """
+    from sonarsim.progress import progress_bar
+    st = settings or INRSettings()
+    st.validate()
+    s, p = _check_inputs(waveforms, pulse)
+    n_pings, n_t = s.shape
+    scale = float(np.max(np.abs(s)))
+    if not scale > 0:
+        raise InputError("waveforms: all zero, nothing to deconvolve")
+    n_batches = -(-n_pings // st.pings_per_inr)
+    out = np.empty((n_pings, n_t), dtype=np.complex64)
+    bar = progress_bar(n_batches * st.iterations, progress, unit="it", desc="deconvolve (inr)")
+    first_last = []
+    t0 = time.perf_counter()
+
+    def tick(loss, parts):
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.3e}", mse=f"{parts['mse']:.2e}", refresh=False)
+
+    try:
+        for b in range(n_batches):
+            rows = slice(b * st.pings_per_inr, min((b + 1) * st.pings_per_inr, n_pings))
+            target = s[rows].astype(np.float64) / scale
+            w, losses = inr_batch(target, p, st, st.seed + b, tick)
+            out[rows] = analytic(w.astype(np.float64) * scale)
+            first_last.append((losses[0], losses[-1]))
+    finally:
+        bar.close()
+    info = {"method": "inr", **asdict(st), "normalisation": scale, "n_batches": n_batches,
+            "loss_first": [a for a, _ in first_last], "loss_last": [z for _, z in first_last],
+            "seconds": time.perf_counter() - t0}
+    return out, info
+
+
+# ---- datasets ------------------------------------------------------------------------------
+
+def deconvolve(dataset, method: str = "inr", *, wiener_lambda: float | None = None,
+               inr_settings: INRSettings | None = None, progress: bool = True):
+    """A new :class:`~sonarsim.dataset.SonarDataset` whose waveforms are the deconvolved
+    analytic signals [N, T] complex64 (``waveform_kind = 'deconvolved_analytic'``).
+
+    Geometry, pulse, fs, sound speed, start_sample, ground truth and meta are kept (stored
+    transients are dropped); meta gains ``deconvolution_method`` and
+    ``deconvolution_settings`` (a dict: the settings and what was estimated/measured).
+    """
+    from sonarsim.dataset import SonarDataset
+    if method not in METHODS:
+        raise InputError(f"method: choose one of {', '.join(METHODS)}, got {method!r}")
+    if getattr(dataset, "waveform_kind", "real") != "real":
+        raise InputError(f"dataset waveforms are already '{dataset.waveform_kind}', "
+                         "deconvolve the original dataset")
+    if method == "wiener":
+        sig, info = wiener(dataset.waveforms, dataset.pulse, wiener_lambda)
+    else:
+        sig, info = inr(dataset.waveforms, dataset.pulse, inr_settings, progress)
+    meta = dict(dataset.meta)
+    meta["deconvolution_method"] = method
+    meta["deconvolution_settings"] = info
+    return SonarDataset(
+        waveforms=sig, tx=dataset.tx, rx=dataset.rx, boresight=dataset.boresight,
+        pulse=dataset.pulse, fs=dataset.fs, sound_speed=dataset.sound_speed,
+        source=dataset.source, start_sample=dataset.start_sample,
+        temperatures=dataset.temperatures, gt_vertices=dataset.gt_vertices,
+        gt_faces=dataset.gt_faces, snr_db=dataset.snr_db, seed=dataset.seed, transients=None,
+        meta=meta, rx_boresight=dataset.rx_boresight, waveform_kind=DECONVOLVED)
+
+
+# ---- measurement helper used by tests and benchmarks ---------------------------------------
+
+def mainlobe_width(envelope: np.ndarray, peak: int | None = None, level_db: float = -6.0,
+                   upsample: int = 16) -> float:
+    """Width (samples) of the lobe around ``peak`` (default: the maximum) where the
+    band-limited (FFT-upsampled ×``upsample``) |signal| stays above ``level_db`` of the peak.
+    ``envelope``: a complex analytic signal [T]."""
+    from sonarsim import signals
+    x = np.asarray(envelope)
+    up = np.abs(signals.fft_upsample(x, upsample))
+    k = int(np.argmax(up)) if peak is None else int(round(peak * upsample))
+    k = int(np.argmax(up[max(0, k - upsample):k + upsample + 1])) + max(0, k - upsample)
+    thr = up[k] * 10 ** (level_db / 20)
+    lo = k
+    while lo > 0 and up[lo - 1] >= thr:
+        lo -= 1
+    hi = k
+    while hi < len(up) - 1 and up[hi + 1] >= thr:
+        hi += 1
+    # linear interpolation of the two crossings
+    left = lo - (up[lo] - thr) / (up[lo] - up[lo - 1]) if lo > 0 else lo
+    right = hi + (up[hi] - thr) / (up[hi] - up[hi + 1]) if hi < len(up) - 1 else hi
+    return float(right - left) / upsample

@@ -1,0 +1,240 @@
+"""Pulse deconvolution (recon.deconvolution, recon deconvolve) and deconvolved datasets."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from recon import deconvolution as dc
+from recon import measurements
+from sonarsim import signals
+from sonarsim.dataset import SonarDataset
+from sonarsim.errors import FormatError, InputError
+
+FS = 100e3
+TRUE_POS = (100, 180, 260)
+AMPS = (1.0, 0.7, 0.5)
+
+
+def reflector_train(n_pings=8, n_t=400, snr_db=20.0, seed=0):
+    """Sparse reflectors (integer sample positions, one sample later every 10 pings) convolved
+    with the reference's 20 kHz LFM, plus white noise at ``snr_db``.
+    Returns (noisy [P, T], pulse, truth [P, 3], noise sigma)."""
+    p = signals.named_pulse("lfm-20k", FS)
+    w = np.zeros((n_pings, n_t))
+    truth = np.array([[k + i // 10 for k in TRUE_POS] for i in range(n_pings)])
+    for i in range(n_pings):
+        w[i, truth[i]] = AMPS
+    clean = dc.convolve(w, p)
+    noisy, sigma = signals.add_noise(clean, snr_db, np.random.default_rng(seed))
+    # the label is a measurement: signal power over noise power
+    measured = 10 * np.log10(signals.signal_power(clean) / np.mean((noisy - clean) ** 2))
+    assert abs(measured - snr_db) < 0.3
+    return noisy, p, truth, sigma
+
+
+def _widths_and_offsets(sig, truth):
+    widths, offsets = [], []
+    for i in range(len(truth)):
+        for k in truth[i]:
+            seg = np.abs(sig[i, k - 5:k + 6])
+            offsets.append(int(np.argmax(seg)) - 5)
+            widths.append(dc.mainlobe_width(sig[i], k))
+    return np.array(widths), np.array(offsets)
+
+
+# ---- operators and loss ---------------------------------------------------------------------
+
+def test_convolve_and_correlate_are_adjoint_and_match_numpy():
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=37)
+    w, g = rng.normal(size=(3, 120)), rng.normal(size=(3, 120))
+    np.testing.assert_allclose(dc.convolve(w, p),
+                               [np.convolve(row, p)[:120] for row in w], atol=1e-10)
+    assert np.isclose(np.sum(dc.convolve(w, p) * g), np.sum(w * dc.correlate(g, p)))
+
+
+def test_inr_loss_gradient_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    p = signals.named_pulse("lfm-20k", FS)[:40]
+    w, tgt = rng.normal(size=(2, 90)) * 0.1, rng.normal(size=(2, 90)) * 0.1
+    loss, parts, g = dc.inr_loss(w, tgt, p, sparsity=0.1, phase=0.05)
+    assert np.isclose(loss, parts["mse"] + 0.1 * parts["sparsity"] + 0.05 * parts["phase"])
+    for seed in range(3):
+        d = np.random.default_rng(10 + seed).normal(size=w.shape)
+        eps = 1e-6
+        fd = (dc.inr_loss(w + eps * d, tgt, p, 0.1, 0.05)[0]
+              - dc.inr_loss(w - eps * d, tgt, p, 0.1, 0.05)[0]) / (2 * eps)
+        assert np.isclose(fd, np.sum(g * d), rtol=1e-5)
+
+
+def test_analytic_matches_scipy_hilbert():
+    import scipy.signal
+    x = np.random.default_rng(2).normal(size=(2, 101))
+    np.testing.assert_allclose(dc.analytic(x), scipy.signal.hilbert(x, axis=-1), atol=1e-12)
+
+
+# ---- Wiener ---------------------------------------------------------------------------------
+
+def test_noise_estimate_is_close_to_the_added_noise():
+    s, p, _, sigma = reflector_train(n_pings=16)
+    sigma2, _ = dc.noise_and_signal_power(s, p)
+    assert 0.8 < sigma2 / sigma ** 2 < 1.3
+
+
+def test_wiener_sharpens_a_reflector_train_at_20db():
+    s, p, truth, _ = reflector_train()
+    mf = signals.matched_filter(s, p, mode="linear")
+    out, info = dc.wiener(s, p)
+    assert out.dtype == np.complex64 and out.shape == s.shape and info["lambda"] > 0
+    w_mf, off_mf = _widths_and_offsets(mf, truth)
+    w_wi, off_wi = _widths_and_offsets(out, truth)
+    assert np.all(off_mf == 0) and np.all(np.abs(off_wi) == 0)
+    # A linear filter cannot go beyond the pulse band: about 0.53x the matched filter here.
+    assert np.all(w_wi <= 0.6 * w_mf), (w_wi, w_mf)
+
+
+# ---- INR ------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def inr_result():
+    s, p, truth, _ = reflector_train()
+    st = dc.INRSettings(iterations=150, lr=1e-2, lr_final=1e-3, sparsity=0.1, phase=1e-4)
+    out, info = dc.inr(s, p, st, progress=False)
+    return s, p, truth, out, info
+
+
+def test_inr_halves_the_matched_filter_mainlobe_at_20db(inr_result):
+    s, p, truth, out, info = inr_result
+    mf = signals.matched_filter(s, p, mode="linear")
+    w_mf, _ = _widths_and_offsets(mf, truth)
+    w_inr, off = _widths_and_offsets(out, truth)
+    assert np.all(np.abs(off) <= 1), off
+    assert np.median(w_inr) <= 0.5 * np.median(w_mf), (w_inr, w_mf)
+    assert np.mean(w_inr <= 0.5 * w_mf) >= 0.75
+    assert info["loss_last"][0] < 0.05 * info["loss_first"][0]
+
+
+def test_inr_output_fits_the_data_to_the_noise_level(inr_result):
+    s, p, truth, out, info = inr_result
+    w = np.real(out).astype(np.float64)
+    resid = np.linalg.norm(dc.convolve(w, p) - s) / np.linalg.norm(s)
+    assert resid < 0.2        # noise alone is 0.15 of the data norm here
+    # sparse: little energy away from the reflectors
+    mask = np.ones(s.shape, bool)
+    for i, ks in enumerate(truth):
+        for k in ks:
+            mask[i, k - 3:k + 4] = False
+    assert np.sum(np.abs(out[mask]) ** 2) < 0.15 * np.sum(np.abs(out) ** 2)
+
+
+def test_inr_settings_are_validated():
+    with pytest.raises(InputError, match="iterations"):
+        dc.INRSettings(iterations=0).validate()
+    with pytest.raises(InputError, match="sparsity"):
+        dc.INRSettings(sparsity=-1.0).validate()
+
+
+# ---- datasets -------------------------------------------------------------------------------
+
+def _point_dataset(tmp_path, n_pings=24):
+    from recon import synthetic
+    ds = synthetic.point_dataset([[0.0, 0.0, 0.1]], 1.0, n_pings=n_pings)
+    ds.waveforms = signals.add_noise(ds.waveforms, 20.0, 0)[0].astype(np.float32)
+    path = tmp_path / "pt.h5"
+    ds.write(path)
+    return ds, path
+
+
+def test_deconvolved_dataset_round_trip_and_measurements_pass_through(tmp_path):
+    ds, _ = _point_dataset(tmp_path, 8)
+    out = dc.deconvolve(ds, "wiener")
+    assert out.waveform_kind == "deconvolved_analytic" and out.waveforms.dtype == np.complex64
+    path = tmp_path / "pd.h5"
+    out.write(path)
+    with h5py.File(path) as f:
+        assert f.attrs["waveform_kind"] == "deconvolved_analytic"
+        assert f["waveforms"].dtype == np.complex64
+    back = SonarDataset.read(path)
+    np.testing.assert_array_equal(back.waveforms, out.waveforms)
+    assert back.meta["deconvolution_method"] == "wiener"
+    assert back.meta["deconvolution_settings"]["lambda"] > 0
+    assert back.select([1, 2]).waveform_kind == "deconvolved_analytic"
+    np.testing.assert_array_equal(measurements.matched_filtered(back, [3]), out.waveforms[[3]])
+    np.testing.assert_array_equal(measurements.analytic_waveforms(back), out.waveforms)
+    assert measurements.is_deconvolved(back) and not measurements.is_deconvolved(ds)
+    # a real dataset still gets the matched filter
+    assert not np.allclose(measurements.complex_signals(ds), ds.waveforms)
+    with pytest.raises(InputError, match="already"):
+        dc.deconvolve(back, "wiener")
+
+
+def test_waveform_kind_is_validated(tmp_path):
+    ds, path = _point_dataset(tmp_path, 4)
+    with h5py.File(path) as f:
+        assert f.attrs["waveform_kind"] == "real"
+    assert SonarDataset.read(path).waveform_kind == "real"
+    with pytest.raises(InputError, match="expected complex"):
+        SonarDataset(ds.waveforms, ds.tx, ds.rx, ds.boresight, ds.pulse, ds.fs,
+                     ds.sound_speed, "x", waveform_kind="deconvolved_analytic")
+    with pytest.raises(InputError, match="waveform_kind"):
+        SonarDataset(ds.waveforms, ds.tx, ds.rx, ds.boresight, ds.pulse, ds.fs,
+                     ds.sound_speed, "x", waveform_kind="bogus")
+    with h5py.File(path, "r+") as f:
+        f.attrs["waveform_kind"] = "deconvolved_analytic"      # but float32 data
+    with pytest.raises(FormatError, match="expected complex64"):
+        SonarDataset.read(path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["waveform_kind"] = "nonsense"
+    with pytest.raises(FormatError, match="waveform_kind"):
+        SonarDataset.read(path)
+
+
+def test_backprojection_of_a_deconvolved_dataset_is_sharper(tmp_path):
+    from recon import backprojection
+    from recon.grid import Grid
+    ds, _ = _point_dataset(tmp_path, 24)
+    grid = Grid(np.array([[-0.03, 0.03], [-0.03, 0.03], [0.1, 0.1]]), (61, 61, 1))
+    areas, peaks = [], []
+    for d in (ds, dc.deconvolve(ds, "wiener")):
+        a = np.abs(backprojection.backproject(d, grid, progress=False)[:, :, 0])
+        areas.append(int(np.sum(a >= a.max() / 2)))
+        peaks.append(np.unravel_index(np.argmax(a), a.shape))
+    assert peaks[0] == peaks[1] == (30, 30)
+    assert areas[1] < 0.95 * areas[0], areas
+
+
+# ---- CLI ------------------------------------------------------------------------------------
+
+def _recon(*args):
+    return subprocess.run([sys.executable, "-m", "recon.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def test_cli_inr_two_iterations_end_to_end(tmp_path):
+    _, path = _point_dataset(tmp_path, 12)
+    out = tmp_path / "pd.h5"
+    r = _recon("deconvolve", path, "--out", out, "--iterations", "2", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    back = SonarDataset.read(out)
+    info = back.meta["deconvolution_settings"]
+    assert back.waveform_kind == "deconvolved_analytic" and back.n_pings == 12
+    assert info["method"] == "inr" and info["iterations"] == 2
+    assert np.isfinite(info["loss_first"][0]) and info["loss_last"][0] < info["loss_first"][0]
+    assert np.all(np.isfinite(back.waveforms))
+
+
+def test_cli_bad_input_gives_one_line_errors(tmp_path):
+    _, path = _point_dataset(tmp_path, 4)
+    pd = tmp_path / "pd.h5"
+    assert _recon("deconvolve", path, "--out", pd, "--method", "wiener").returncode == 0
+    for args, text in [((tmp_path / "none.h5",), "no such file"),
+                       ((pd,), "already"),
+                       ((path, "--lr", "-1"), "lr"),
+                       ((path, "--method", "wiener", "--wiener-lambda", "0"), "lambda")]:
+        r = _recon("deconvolve", *args, "--out", tmp_path / "x.h5")
+        assert r.returncode == 2, (args, r.stderr)
+        assert text in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
