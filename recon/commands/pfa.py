@@ -1,0 +1,37 @@
+"""``recon pfa``: polar-format (far-field Fourier-domain) reconstruction of a dataset."""
+from __future__ import annotations
+
+import argparse
+
+from . import _common
+
+HELP = ("Polar formatting: place each ping's spectrum at k = 2πf/c·(û_TX + û_RX) about a "
+        "reference point and invert with a 3-D non-uniform FFT (far-field baseline).")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    _common.add_dataset_and_grid(parser)
+    parser.add_argument("--reference-point", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="phase (motion-compensation) centre in metres (default: grid centre)")
+    parser.add_argument("--band-db", type=float, default=-20.0,
+                        help="keep frequencies whose pulse power is within this many dB of "
+                             "the peak (default -20)")
+    parser.add_argument("--taper", type=float, default=0.25,
+                        help="Tukey window ratio over the band, 0 = none, 1 = Hann (default 0.25)")
+    parser.add_argument("--eps", type=float, default=1e-6, help="finufft tolerance (default 1e-6)")
+    parser.add_argument("--mean-sound-speed", action="store_true",
+                        help="ignore per-ping temperatures; use the dataset's sound speed for every ping")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import pfa
+    ds = _common.load_dataset(args)
+    grid = _common.grid_from_args(args, ds)
+    vol = pfa.solve(ds, grid, reference_point=args.reference_point, band_db=args.band_db,
+                    taper=args.taper, eps=args.eps,
+                    per_ping_sound_speed=not args.mean_sound_speed,
+                    progress=not args.no_progress)
+    vol.params["dataset"] = str(args.dataset)
+    vol.write(args.out)
+    print(f"wrote {args.out}: polar formatting of {ds.n_pings} pings on {grid.shape} voxels")
+    return 0
