@@ -1,0 +1,98 @@
+"""Command-line options of ``recon gd`` and ``recon nbp``, derived from
+:class:`recon.solver.SolverSettings` (one option per field: names, types, choices and help
+come from the dataclass and :data:`recon.solver.HELP`)."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+
+from . import _common
+
+# Extra spellings kept for compatibility with earlier releases.
+ALIASES = {"n_rays": ("--rays",), "beamwidth_deg": ("--beamwidth",)}
+NETWORK_ONLY = ("hash_", "mlp_", "warm_start")
+
+
+def _type_of(field):
+    hint = str(field.type)
+    if "bool" in hint:
+        return bool
+    if "int" in hint:
+        return int
+    if "float" in hint:
+        return float
+    return str
+
+
+def add_arguments(parser: argparse.ArgumentParser, network: bool) -> None:
+    from ..solver import CHOICES, HELP, PRESETS, SolverSettings, settings_for
+    base = settings_for(None, network=network)
+    _common.add_dataset_and_grid(parser)
+    parser.add_argument("--preset", default="cpu" if network else None,
+                        help=f"named settings, several joined by '+': {', '.join(PRESETS)} "
+                             f"(default {'cpu' if network else 'none'}); explicit options override it")
+    for f in dataclasses.fields(SolverSettings):
+        if not network and f.name.startswith(NETWORK_ONLY):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        names = (flag,) + ALIASES.get(f.name, ())
+        kind = _type_of(f)
+        text = f"{HELP.get(f.name, '')} (default {getattr(base, f.name)})"
+        if kind is bool:
+            parser.add_argument(*names, dest=f.name, action=argparse.BooleanOptionalAction,
+                                default=None, help=text)
+        elif f.name in CHOICES:
+            parser.add_argument(*names, dest=f.name, choices=CHOICES[f.name], default=None, help=text)
+        elif f.name == "lr_final":
+            parser.add_argument(*names, dest=f.name, type=_float_or_none, default=None,
+                                help=text + "; 'none' = constant")
+        else:
+            parser.add_argument(*names, dest=f.name, type=kind, default=None, help=text)
+    parser.add_argument("--checkpoint", default=None, help="checkpoint file (.npz), written atomically")
+    parser.add_argument("--checkpoint-every", type=int, default=100 if network else 500,
+                        help="iterations between checkpoints")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from --checkpoint if it exists (same dataset, grid, settings)")
+
+
+_NONE = object()
+
+
+def _float_or_none(text):
+    return _NONE if text.lower() == "none" else float(text)
+
+
+def overrides(args) -> dict:
+    """The settings given on the command line (None = not given)."""
+    from ..solver import SolverSettings
+    out = {}
+    for f in dataclasses.fields(SolverSettings):
+        v = getattr(args, f.name, None)
+        if v is not None:
+            out[f.name] = None if v is _NONE else v
+    return out
+
+
+def run(args, network: bool) -> int:
+    from sonarsim.errors import InputError
+    from .. import solver
+    if args.resume and not args.checkpoint:
+        raise InputError("--resume needs --checkpoint FILE")
+    if args.checkpoint_every < 1:
+        raise InputError(f"--checkpoint-every: must be >= 1, got {args.checkpoint_every}")
+    kw = overrides(args)
+    # Reject bad values before the (possibly large) dataset is read.
+    settings = solver.settings_for(args.preset, network=network, **kw)
+    ds = _common.load_dataset(args)
+    grid = _common.grid_from_args(args, ds)
+    method = "nbp" if network else "gd"
+    vol = solver.solve(ds, grid, network=network, method=method, preset=args.preset,
+                       checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
+                       resume=args.resume, progress=not args.no_progress, **kw)
+    vol.params["dataset"] = str(args.dataset)
+    vol.write(args.out)
+    what = "neural backprojection" if network else "gradient descent"
+    print(f"wrote {args.out}: {what}, {settings.iterations} iterations on {grid.shape} voxels, "
+          f"final loss {vol.params['final_loss']:.4g} (data {vol.params['final_data_loss']:.4g})")
+    return 0

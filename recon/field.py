@@ -1,0 +1,160 @@
+"""The neural scene of neural backprojection: a complex field σ(x) = MLP(hash-grid(x))
+(Reed et al. 2023, §4.1; reference ``inr_reconstruction/network.py``) on ``drjit.nn``.
+
+- Coordinates: x (metres) → u = (x − lo)/(hi − lo) over the grid box widened by one voxel
+  pitch on every side; σ = 0 outside that box (as the voxel scene), so both representations
+  share one domain. The reference scales by 1/(4 max|x|) and relies on tcnn's index
+  wrap-around instead.
+- Encoding: multiresolution hash grid (``drjit.nn.HashGridEncoding``: levels, 2 features per
+  level, 2^log2 entries per level, base resolution, per-level scale), float32.
+- MLP: bias-free Linear layers with ReLU between them, width × hidden layers, 2 outputs
+  (Re σ, Im σ; 1 output for the incoherent ablation), evaluated in tensor mode (GEMM): on
+  the LLVM backend this trains 4–5× faster than cooperative vectors.
+- Normals for the Lambertian factor: ∇ₓ|σ| by Dr.Jit reverse-mode AD with respect to the
+  sample points (weights held constant): the normal is a *constant* in the weight gradient,
+  whereas the reference differentiates through it (``create_graph=True``); Dr.Jit has no
+  second-order AD through the hash grid.
+
+Parameters are flat float32 arrays in a dict ('grid', 'w0', 'w1', …) so that one Adam and
+one checkpoint format serve voxels and network alike.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._jit import jit
+from .grid import Grid
+
+
+class NetworkScene:
+    """Hash grid + MLP complex field over a :class:`~recon.grid.Grid`'s box.
+
+    settings: a :class:`recon.solver.SolverSettings` (hash_* and mlp_* fields).
+    """
+
+    kind = "network"
+
+    def __init__(self, grid: Grid, settings, incoherent: bool = False):
+        import drjit.nn as nn
+        m = jit()
+        self.m, self.grid, self.incoherent = m, grid, incoherent
+        sp = grid.spacing
+        pitch = float(np.mean(sp[sp > 0])) if np.any(sp > 0) else 0.01
+        self.h = np.where(sp > 0, sp, pitch)
+        self.lo = grid.bounds[:, 0] - self.h
+        self.ext = grid.bounds[:, 1] + self.h - self.lo
+        self.enc = nn.HashGridEncoding(
+            m.Float, 3, n_levels=int(settings.hash_levels),
+            n_features_per_level=int(settings.hash_features),
+            hashmap_size=2 ** int(settings.hash_log2_size),
+            base_resolution=int(settings.hash_base_resolution),
+            per_level_scale=float(settings.hash_level_scale))
+        n_in = self.enc.n_output_features
+        n_out = 1 if incoherent else 2
+        self.layers = [int(settings.mlp_width)] * int(settings.mlp_hidden)
+        self.shapes = [(o, i) for i, o in zip([n_in] + self.layers, self.layers + [n_out])]
+
+    # parameters --------------------------------------------------------------------
+    def initial(self, rng: np.random.Generator, x0=None) -> dict:
+        """Hash table uniform in ±1e-4 (tcnn's init), weights uniform in ±1/√fan_in
+        (PyTorch's default for Linear), from the run's NumPy generator."""
+        p = {"grid": rng.uniform(-1e-4, 1e-4, self.enc.n_params).astype(np.float32)}
+        for i, (o, n) in enumerate(self.shapes):
+            p[f"w{i}"] = rng.uniform(-1, 1, o * n).astype(np.float32) / np.float32(np.sqrt(n))
+        return p
+
+    @property
+    def n_params(self) -> int:
+        return int(self.enc.n_params + sum(o * i for o, i in self.shapes))
+
+    # evaluation --------------------------------------------------------------------
+    def evaluate(self, params: dict, points):
+        """(Re σ, Im σ) Float at ``points`` Array3f (metres); differentiable in the
+        parameters and the points."""
+        import drjit as dr
+        m = self.m
+        u = m.Array3f(*((points[a] - float(self.lo[a])) * float(1.0 / self.ext[a])
+                        for a in range(3)))
+        inside = (u[0] >= 0) & (u[0] <= 1) & (u[1] >= 0) & (u[1] <= 1) & (u[2] >= 0) & (u[2] <= 1)
+        self.enc.data = params["grid"]
+        x = m.TensorXf(self.enc(u))
+        for i, (o, n) in enumerate(self.shapes):
+            x = m.TensorXf(params[f"w{i}"], shape=(o, n)) @ x
+            if i + 1 < len(self.shapes):
+                x = dr.maximum(x, 0.0)
+        re = dr.select(inside, x[0].array, 0.0)
+        im = dr.zeros(m.Float, dr.width(re)) if self.incoherent else dr.select(inside, x[1].array, 0.0)
+        return re, im
+
+    def bind(self, params: dict) -> "BoundNetwork":
+        return BoundNetwork(self, params)
+
+    def volume(self, params: dict, grid: Grid | None = None, chunk: int = 1 << 17) -> np.ndarray:
+        """The complex field on ``grid`` (default: the scene's grid) [nx, ny, nz] complex64,
+        in chunks of ``chunk`` points (any resolution, §4.6)."""
+        import drjit as dr
+        m = self.m
+        grid = self.grid if grid is None else grid
+        detached = {k: dr.detach(v) for k, v in params.items()}
+        out = np.empty(grid.size, dtype=np.complex64)
+        with dr.suspend_grad():
+            for s in range(0, grid.size, chunk):
+                pts = grid.points_range(s, s + chunk).T.astype(np.float32)
+                re, im = self.evaluate(detached, m.Array3f(*(m.Float(a) for a in pts)))
+                out[s:s + pts.shape[1]] = np.asarray(re) + 1j * np.asarray(im)
+        return out.reshape(grid.shape)
+
+    def warm_start(self, params: dict, x0: np.ndarray, iterations: int,
+                   rng: np.random.Generator, lr: float = 1e-2, batch: int = 1 << 14) -> dict:
+        """Fit the field to the volume ``x0`` [nx, ny, nz] (e.g. the scaled backprojection) at
+        the voxel centres: half the batch uniform, half ∝ |x0|; Adam on mean|σ − x0|²/max|x0|²."""
+        import drjit as dr
+        from .solver import Adam
+        m = self.m
+        flat = x0.ravel()
+        mag = np.abs(flat).astype(np.float64)
+        norm = float(mag.max() ** 2) or 1.0
+        p_imp = (mag / mag.sum()) if mag.sum() > 0 else None
+        opt = Adam(params, lr)
+        for _ in range(int(iterations)):
+            idx = rng.integers(0, flat.size, batch)
+            if p_imp is not None:
+                idx[batch // 2:] = rng.choice(flat.size, batch - batch // 2, p=p_imp)
+            pts = (self.grid.bounds[:, 0] + np.stack(np.unravel_index(idx, self.grid.shape), 1)
+                   * self.grid.spacing).T.astype(np.float32)
+            re, im = self.evaluate(opt.params, m.Array3f(*(m.Float(a) for a in pts)))
+            t = flat[idx]
+            loss = (dr.mean(dr.square(re - m.Float(t.real.astype(np.float32))))
+                    + dr.mean(dr.square(im - m.Float(t.imag.astype(np.float32))))) / norm
+            dr.backward(loss)
+            opt.step()
+        return {k: np.asarray(dr.detach(v)) for k, v in opt.params.items()}
+
+
+class BoundNetwork:
+    """The field with fixed parameters: ``self(points)`` → (re, im) and
+    ``gradient_of_magnitude(points)`` → (re, im, ∇|σ|) for the Lambertian normals."""
+
+    def __init__(self, scene: NetworkScene, params: dict):
+        self.scene, self.params = scene, params
+
+    def __call__(self, points):
+        return self.scene.evaluate(self.params, points)
+
+    def magnitude_gradient(self, points):
+        """∇ₓ|σ| (Array3f, per metre) by reverse-mode AD in the points, weights detached."""
+        import drjit as dr
+        m = self.scene.m
+        p = m.Array3f(dr.detach(points))
+        dr.enable_grad(p)
+        detached = {k: dr.detach(v) for k, v in self.params.items()}
+        re, im = self.scene.evaluate(detached, p)
+        dr.backward(dr.sum(dr.sqrt(re * re + im * im + 1e-20)))
+        g = dr.grad(p)
+        dr.eval(g)
+        return m.Array3f(g)
+
+    def gradient_of_magnitude(self, points):
+        grad = self.magnitude_gradient(points)
+        re, im = self(points)
+        return re, im, grad

@@ -1,0 +1,29 @@
+"""Neural backprojection (Reed et al., SIGGRAPH 2023, §4; reference
+``inr_reconstruction/reconstruct_scene.py``): a hash-grid + MLP complex field
+(:mod:`recon.field`) fitted through the ellipsoidal forward model by the solver of
+:mod:`recon.solver` — the same code as gradient descent with a network in place of voxels.
+
+``preset='cpu'`` (the default) is sized for a 2-core CPU (12 hash levels, a 32-wide MLP with 2
+hidden layers, 5 pings × 64 bins × 600 rays per step); ``preset='reference'`` has the
+reference's sizes (14 levels, 128 × 3, 200 bins, 4777 rays) for a GPU variant.
+"""
+from __future__ import annotations
+
+from . import solver
+from .grid import Grid
+
+
+def settings_for(preset: str | None = "cpu", **overrides) -> solver.SolverSettings:
+    return solver.settings_for(preset, network=True, **overrides)
+
+
+def solve(dataset, grid: Grid, *, preset: str | None = "cpu", checkpoint=None,
+          checkpoint_every: int = 200, resume: bool = False, progress: bool = True,
+          callback=None, export_grid: Grid | None = None, **overrides):
+    """Fit the neural field to ``dataset`` over ``grid``'s box; returns a Volume (method
+    'nbp') sampled on ``export_grid`` (default ``grid``; any resolution). Any
+    :class:`~recon.solver.SolverSettings` field can be given as a keyword."""
+    return solver.solve(dataset, grid, network=True, method="nbp", preset=preset,
+                        checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
+                        progress=progress, callback=callback, export_grid=export_grid,
+                        **overrides)
