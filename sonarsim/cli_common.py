@@ -3,17 +3,30 @@
 Each subcommand is a module in ``<package>.commands`` that defines ``HELP`` (one
 line), ``add_arguments(parser)`` and ``run(args) -> int``; the module name with
 ``_`` replaced by ``-`` is the subcommand name. User mistakes (:class:`SonarsimError`,
-missing files) become one line on stderr and exit status 2.
+missing files) become one line on stderr and exit status 2; so does running out of memory.
+
+Options every subcommand gets here:
+
+* ``--max-memory SIZE``: the memory a run may plan to use (:mod:`sonarsim.limits`);
+* ``--force`` on commands that write files: replace an existing output (otherwise refused);
+  the outputs are checked before any work and locked for the run (:mod:`sonarsim.outputs`).
+  A module names its file options in ``OUTPUTS`` (dests, e.g. ``("out", "mesh")``); without
+  it, an ``--out`` option is one unless its metavar or help speaks of a directory. A module
+  that handles an existing output itself (``simulate`` resumes or reports a finished run)
+  sets ``OUTPUT_EXISTS_OK = True``;
+* ``--threads N`` on every ``recon`` subcommand: Dr.Jit worker threads (as ``sonarsim
+  render/simulate --threads``).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import pkgutil
 import sys
 
-from . import runtime
-from .errors import SonarsimError
+from . import limits, outputs, runtime
+from .errors import InputError, SonarsimError
 
 
 def _command_modules(package: str):
@@ -35,8 +48,76 @@ def build_parser(prog: str, package: str, description: str) -> argparse.Argument
         module = importlib.import_module(modname)
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
+        _add_common_options(p, module, threads=prog == "recon")
         p.set_defaults(_run=module.run)
     return parser
+
+
+def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
+    return any(option in a.option_strings for a in parser._actions)
+
+
+def _file_outputs(parser: argparse.ArgumentParser, module) -> tuple[str, ...]:
+    """Dests of the options naming output files (see the module docstring)."""
+    declared = getattr(module, "OUTPUTS", None)
+    if declared is not None:
+        return tuple(declared)
+    for action in parser._actions:
+        if action.dest == "out" and action.option_strings:
+            words = f"{action.metavar or ''} {action.help or ''}"
+            if "DIR" not in words and "directory" not in words.lower():
+                return ("out",)
+    return ()
+
+
+def _add_common_options(p: argparse.ArgumentParser, module, threads: bool) -> None:
+    g = p.add_argument_group("resources and outputs")
+    if not _has_option(p, "--max-memory"):
+        g.add_argument("--max-memory", default=None, metavar="SIZE",
+                       help="refuse a run whose estimated memory exceeds SIZE (e.g. 8G, 512M; "
+                            "default: 80%% of this machine's memory or $SONARSIM_MAX_MEMORY)")
+    if threads and not _has_option(p, "--threads"):
+        g.add_argument("--threads", type=int, default=None, metavar="N",
+                       help="Dr.Jit worker threads (default: all cores)")
+    dests = _file_outputs(p, module)
+    if dests and not _has_option(p, "--force"):
+        g.add_argument("--force", action="store_true",
+                       help="replace existing output files (otherwise an existing output is "
+                            "refused)")
+    p.set_defaults(_outputs=dests, _outputs_exist_ok=bool(getattr(module, "OUTPUT_EXISTS_OK",
+                                                                   False)))
+
+
+def _output_paths(args: argparse.Namespace) -> list:
+    """Check the output files before any work; return them (to be locked)."""
+    paths = []
+    for dest in getattr(args, "_outputs", ()):
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        outputs.check_output(value, force=bool(getattr(args, "force", False)),
+                             option="--" + dest.replace("_", "-"),
+                             exists_ok=args._outputs_exist_ok)
+        paths.append(value)
+    return paths
+
+
+@contextlib.contextmanager
+def _thread_count(threads):
+    """Dr.Jit runs on ``threads`` worker threads inside (None: unchanged)."""
+    if threads is None:
+        yield
+        return
+    if isinstance(threads, bool) or int(threads) != threads or threads < 1:
+        raise InputError(f"--threads must be >= 1, got {threads}")
+    runtime.mitsuba()       # a working libLLVM before drjit is imported
+    import drjit as dr
+    before = dr.thread_count()
+    dr.set_thread_count(int(threads))
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
 
 
 def run_main(prog: str, package: str, description: str, argv=None) -> int:
@@ -48,7 +129,16 @@ def run_main(prog: str, package: str, description: str, argv=None) -> int:
     try:
         if args.variant:
             runtime.set_variant(args.variant)
-        return int(args._run(args) or 0)
+        limits.set_max_memory(getattr(args, "max_memory", None))
+        paths = _output_paths(args)
+        threads = getattr(args, "threads", None) if "recon" in package else None
+        with outputs.output_locks(paths), _thread_count(threads):
+            return int(args._run(args) or 0)
+    except MemoryError:
+        print(f"{prog}: error: ran out of memory (the run needed more than this machine "
+              "could give; use smaller sizes, or --max-memory to be refused earlier)",
+              file=sys.stderr)
+        return 2
     except (SonarsimError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         msg = str(exc) if not isinstance(exc, OSError) or not exc.filename else \
             f"{exc.filename}: {exc.strerror}"
