@@ -109,3 +109,127 @@ def test_backproject_threads_option_gives_the_same_volume(ds_file, tmp_path):
         vols.append(Volume.read(out).volume)
     assert np.array_equal(vols[0], vols[1])
     assert np.abs(vols[0]).max() > 0
+
+
+# ----------------------------------------------------------------------------- outputs
+
+def _bp(ds_file, out, *extra):
+    return recon_main(["backproject", str(ds_file), "--out", str(out), "--bounds", *BOUNDS,
+                       "--shape", "5", "5", "5", "--no-progress", *extra])
+
+
+def test_existing_output_is_not_replaced_without_force(ds_file, tmp_path, capsys):
+    out = tmp_path / "notes.txt"
+    out.write_text("an unrelated file\n")
+    assert _bp(ds_file, out) == 2
+    assert "file exists; pass --force to replace it" in one_line_error(capsys)
+    assert out.read_text() == "an unrelated file\n"
+    assert _bp(ds_file, out, "--force") == 0
+    assert Volume.read(out).shape == (5, 5, 5)
+    assert not outputs.lock_path(out).exists()       # the lock is removed after the run
+
+
+def test_out_naming_a_directory_is_refused_up_front(ds_file, tmp_path, capsys):
+    target = tmp_path / "adir"
+    target.mkdir()
+    assert _bp(ds_file, target, "--force") == 2
+    assert "is a directory" in one_line_error(capsys)
+
+
+def test_second_writer_fails_at_once(ds_file, tmp_path, capsys):
+    out = tmp_path / "v.h5"
+    with outputs.output_lock(out):       # a first writer holds the output
+        start = time.perf_counter()
+        assert _bp(ds_file, out) == 2
+        assert time.perf_counter() - start < 20
+        assert "another process is writing this output" in one_line_error(capsys)
+        assert not out.exists()
+    assert _bp(ds_file, out) == 0        # free again once the first writer is done
+
+
+def test_lock_is_exclusive_across_processes(tmp_path):
+    out = tmp_path / "x.h5"
+    code = ("import sys, time; from sonarsim import outputs\n"
+            "with outputs.output_lock(sys.argv[1]):\n"
+            "    print('locked', flush=True); time.sleep(30)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline().strip() == "locked"
+        with pytest.raises(outputs.OutputBusyError, match="another process"):
+            with outputs.output_lock(out):
+                pass
+    finally:
+        proc.kill()
+        proc.wait()
+    with outputs.output_lock(out):       # the kernel released the killed holder's lock
+        pass
+
+
+# ----------------------------------------------------------------------------- sonarsim info
+
+def _transients_file(path, **changes):
+    from sonarsim.dataset import Transients
+    t = Transients(transients=np.ones((2, 1, 40), np.float32), path_start=1.0,
+                   path_bin_width=343.0 / (100e3 * 20), sound_speed=343.0, fs=100e3,
+                   oversample=20, tx=np.zeros((2, 3)), rx=np.zeros((2, 3)))
+    t.write(path)
+    with h5py.File(path, "r+") as f:
+        for key, value in changes.items():
+            f.attrs[key] = value
+    return path
+
+
+def _edit_dataset(src, dst, edit):
+    dst.write_bytes(src.read_bytes())
+    with h5py.File(dst, "r+") as f:
+        edit(f)
+    return dst
+
+
+def _set_nan(f):
+    f["waveforms"][1, 3] = np.nan
+
+
+@pytest.mark.parametrize("edit, problem", [
+    (lambda f: f.attrs.__setitem__("fs", 0.0), "fs must be positive and finite, got 0.0"),
+    (lambda f: f.attrs.__setitem__("sound_speed", 0.0), "sound_speed must be positive"),
+    (_set_nan, "dataset 'waveforms' contains 1 NaN or inf values (first in ping 1)"),
+    (lambda f: f["pulse"].__setitem__(slice(None), 0.0), "dataset 'pulse' is all zero"),
+    (lambda f: f["pings/boresight"].__setitem__(0, [0.0, 0.0, 0.0]), "zero-length direction"),
+    (lambda f: f.__delitem__("pulse"), "missing dataset 'pulse'"),
+])
+def test_info_validates_like_the_readers(ds_file, tmp_path, capsys, edit, problem):
+    bad = _edit_dataset(ds_file, tmp_path / "bad.h5", edit)
+    with pytest.raises((FormatError, InputError)):
+        if "pulse' is all zero" not in problem:       # every reader refuses these files
+            SonarDataset.read(bad)
+        else:                                         # recon refuses an all-zero pulse
+            raise InputError("all zero")
+    assert sonarsim_main(["info", str(bad)]) == 1
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    assert problem in captured.out
+    assert "PROBLEMS" in captured.out or "not a valid sonarsim file" in captured.out
+
+
+def test_info_summary_still_printed_for_invalid_dataset(ds_file, tmp_path, capsys):
+    bad = _edit_dataset(ds_file, tmp_path / "bad.h5", lambda f: f.attrs.__setitem__("fs", 0.0))
+    assert sonarsim_main(["info", str(bad)]) == 1
+    out = capsys.readouterr().out
+    assert "N = 24 pings" in out and "tx positions" in out
+
+
+def test_info_transients_with_zero_bin_width(tmp_path, capsys):
+    bad = _transients_file(tmp_path / "t.h5", path_bin_width=0.0)
+    assert sonarsim_main(["info", str(bad)]) == 1
+    assert "path_bin_width must be positive" in capsys.readouterr().out
+    good = _transients_file(tmp_path / "good.h5")
+    assert sonarsim_main(["info", str(good)]) == 0
+    assert "PROBLEMS" not in capsys.readouterr().out
+
+
+def test_info_valid_dataset_exits_zero(ds_file, capsys):
+    assert sonarsim_main(["info", str(ds_file)]) == 0
+    out = capsys.readouterr().out
+    assert "PROBLEMS" not in out and "N = 24 pings" in out

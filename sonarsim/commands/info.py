@@ -2,6 +2,10 @@
 
 Large arrays (transients, waveforms, volume) are read in slabs, so the summary of a
 multi-gigabyte file needs little memory.
+
+``info`` validates a file as the readers do: it prints what it can read, then one line per
+problem (each one a reader would refuse the file for), and exits with status 1 for an
+invalid file; 0 when the file is valid.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import numpy as np
 
 from .. import dataset as fmt
 from ..dataset.volume import voxel_spacing
+from ..errors import FormatError, InputError
 
 HELP = "Print a summary of a sonarsim HDF5 file (transients, sonar dataset or volume)."
 
@@ -25,23 +30,80 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    for line in describe(args.file):
+    path = Path(args.file)
+    if not path.exists():
+        raise FormatError(f"{path}: no such file")
+    try:
+        lines, problems = describe_and_check(path)
+    except FormatError as exc:          # not even the schema could be read
+        lines, problems = [f"{path}: not a valid sonarsim file"], [str(exc)]
+    for line in lines:
         print(line)
+    if problems:
+        print(f"  {'PROBLEMS':<22} {len(problems)}: a reader refuses this file")
+        for problem in problems:
+            print(f"    - {problem}")
+        return 1
     return 0
 
 
 def describe(path: Path | str) -> list[str]:
-    """The summary lines for ``path`` (FormatError if it is not a valid sonarsim file)."""
-    with fmt.inspect(path, allow_partial=True) as (kind, fields):
+    """The summary lines for ``path`` (FormatError if its schema cannot be read)."""
+    return describe_and_check(path)[0]
+
+
+def describe_and_check(path: Path | str) -> tuple[list[str], list[str]]:
+    """(summary lines, problems) of ``path``; the problems are what the readers refuse
+    (FormatError if not even the schema can be read)."""
+    with fmt.inspect(path, allow_partial=True) as (kind, fields), \
+            np.errstate(all="ignore"):
         head = (f"{path}: {fmt.KIND_NAMES[kind]} ({kind}, "
                 f"format version {fields['format_version']})")
+        problems: list[str] = []
         body = {fmt.KIND_TRANSIENTS: _transients, fmt.KIND_DATASET: _dataset,
-                fmt.KIND_VOLUME: _volume}[kind](fields)
+                fmt.KIND_VOLUME: _volume}[kind](fields, problems)
         if not fields["complete"]:
             done = fields.get("pings_done")
             body.insert(0, ("status", "INCOMPLETE: partial output of an unfinished run" + (
                 "" if done is None else f", {done} pings written so far")))
-        return [head] + [f"  {key:<22} {value}" for key, value in body]
+        problems[:0] = _constructor_problems(kind, fields)
+        return [head] + [f"  {key:<22} {value}" for key, value in body], problems
+
+
+_LARGE = ("waveforms", "transients", "volume")
+
+
+def _stub(fields: dict) -> dict:
+    """The constructor arguments with the large arrays replaced by tiny ones of the same
+    dtype and leading size (the constructors then check everything but those values)."""
+    out = {}
+    for key, value in fields.items():
+        if key in ("format_version", "complete", "pings_done"):
+            continue
+        if key in _LARGE and hasattr(value, "shape"):
+            shape = (value.shape[0],) + (1,) * (len(value.shape) - 1)
+            value = np.zeros(shape, dtype=value.dtype)
+        out[key] = value
+    return out
+
+
+def _constructor_problems(kind: str, fields: dict) -> list[str]:
+    """What the typed constructors (as used by every reader) refuse, as one line each."""
+    classes = {fmt.KIND_TRANSIENTS: fmt.Transients, fmt.KIND_DATASET: fmt.SonarDataset,
+               fmt.KIND_VOLUME: fmt.Volume}
+    args = _stub(fields)
+    problems = []
+    if kind == fmt.KIND_DATASET and args.get("transients") is not None:
+        try:
+            args["transients"] = fmt.Transients(**_stub(args["transients"]))
+        except (InputError, TypeError, ValueError) as exc:
+            problems.append(f"transients: {exc}")
+            args["transients"] = None
+    try:
+        classes[kind](**args)
+    except (InputError, TypeError, ValueError) as exc:
+        problems.append(str(exc))
+    return problems
 
 
 # ---- pieces
@@ -90,14 +152,28 @@ def _pulse_band(pulse: np.ndarray, fs: float) -> str:
             f"peak {peak / 1e3:.2f} kHz")
 
 
-def _transient_lines(f: dict, label: str = "") -> list[tuple[str, str]]:
+def _nonfinite(name: str, count: int, first: int | None, problems: list) -> None:
+    if count:
+        problems.append(f"dataset '{name}' contains {count} NaN or inf values "
+                        f"(first in ping {first})")
+
+
+def _transient_lines(f: dict, problems: list, label: str = "") -> list[tuple[str, str]]:
     data: h5py.Dataset = f["transients"]
     n, b, t = data.shape
-    w, c = f["path_bin_width"], f["sound_speed"]
+    w, c = np.float64(f["path_bin_width"]), np.float64(f["sound_speed"])
     start, end = f["path_start"], f["path_start"] + t * w
     energy = np.zeros(b)
+    bad, first, row = 0, None, 0
     for slab in _slabs(data):
-        energy += slab.sum(axis=(0, 2), dtype=np.float64)
+        finite = np.isfinite(slab)
+        if not finite.all():
+            bad += int((~finite).sum())
+            first = row + int(np.argmin(finite.reshape(len(slab), -1).all(axis=1))) \
+                if first is None else first
+        energy += np.where(finite, slab, 0).sum(axis=(0, 2), dtype=np.float64)
+        row += len(slab)
+    _nonfinite(label + "transients", bad, first, problems)
     energies = ", ".join(f"{i + 1}: {e:.4g}" for i, e in enumerate(energy))
     return [
         (label + "shape", f"N = {n} pings x B = {b} bounces x T = {t} bins (float32)"),
@@ -109,26 +185,35 @@ def _transient_lines(f: dict, label: str = "") -> list[tuple[str, str]]:
     ] + [(label + key, value) for key, value in _meta(f["meta"])]
 
 
-def _transients(f: dict) -> list[tuple[str, str]]:
-    return _transient_lines(f) + [("tx positions", _extent(f["tx"])),
+def _transients(f: dict, problems: list) -> list[tuple[str, str]]:
+    return _transient_lines(f, problems) + [("tx positions", _extent(f["tx"])),
                                   ("rx positions", _extent(f["rx"]))]
 
 
-def _dataset(f: dict) -> list[tuple[str, str]]:
+def _dataset(f: dict, problems: list) -> list[tuple[str, str]]:
     wf: h5py.Dataset = f["waveforms"]
     n, t = wf.shape
-    fs, c, k0 = f["fs"], f["sound_speed"], f["start_sample"]
+    fs, c, k0 = np.float64(f["fs"]), np.float64(f["sound_speed"]), f["start_sample"]
     t0, t1 = k0 / fs, (k0 + t - 1) / fs
     peak, square = 0.0, 0.0
+    bad, first, row = 0, None, 0
     for slab in _slabs(wf):
+        finite = np.isfinite(slab)
+        if not finite.all():
+            bad += int((~finite).sum())
+            first = row + int(np.argmin(finite.all(axis=1))) if first is None else first
+            slab = np.where(finite, slab, 0)
         peak = max(peak, float(np.abs(slab).max(initial=0.0)))
-        square += float(np.square(slab, dtype=np.float64).sum())
+        square += float(np.square(np.abs(slab), dtype=np.float64).sum())
+        row += len(slab)
+    _nonfinite("waveforms", bad, first, problems)
     rms = np.sqrt(square / max(1, n * t))
     pulse = f["pulse"]
+    finite_note = f" over the finite samples ({bad} NaN/inf)" if bad else ""
     lines = [
         ("source", f["source"]),
-        ("waveforms", f"N = {n} pings x T = {t} samples (float32); peak |x| {peak:.4g}, "
-                      f"rms {rms:.4g}"),
+        ("waveforms", f"N = {n} pings x T = {t} samples ({wf.dtype}); peak |x| {peak:.4g}, "
+                      f"rms {rms:.4g}{finite_note}"),
         ("sampling", f"fs = {fs:g} Hz, c = {c:g} m/s"),
         ("time span", f"samples {k0} .. {k0 + t - 1}: {t0 * 1e3:.3f} .. {t1 * 1e3:.3f} ms "
                       f"(round-trip path {t0 * c:.3f} .. {t1 * c:.3f} m)"),
@@ -139,8 +224,12 @@ def _dataset(f: dict) -> list[tuple[str, str]]:
         ("pulse", f"{len(pulse)} samples ({len(pulse) / fs * 1e3:.3f} ms), "
                   f"{_pulse_band(pulse, fs)}"),
         ("noise", "none added" if f["snr_db"] is None else f"SNR {f['snr_db']:g} dB"),
+        *_fidelity(f["meta"]),
         ("seed", "none" if f["seed"] is None else str(f["seed"])),
     ]
+    if not np.any(pulse):
+        problems.append("dataset 'pulse' is all zero: matched filtering would zero every echo "
+                        "(recon refuses it)")
     if f["temperatures"] is not None:
         lines.append(("temperature", _range(f["temperatures"], "degC", 2)))
     if f["gt_vertices"] is not None:
@@ -149,26 +238,50 @@ def _dataset(f: dict) -> list[tuple[str, str]]:
                                       + (f", {_extent(v).split(';')[0]}" if len(v) else "")))
     lines += _meta(f["meta"])
     if f["transients"] is not None:
-        lines += _transient_lines(f["transients"], "transients.")
+        lines += _transient_lines(f["transients"], problems, "transients.")
     else:
         lines.append(("transients", "not stored"))
     return lines
 
 
-def _volume(f: dict) -> list[tuple[str, str]]:
+def _fidelity(meta: dict) -> list[tuple[str, str]]:
+    """The measured fidelity of a simulated dataset (docs/simulation.md), if recorded."""
+    lines = []
+    if "mc_snr_db" in meta:
+        target = meta.get("mc_snr_target_db")
+        lines.append(("Monte-Carlo SNR", f"{meta['mc_snr_db']:.1f} dB after matched filtering "
+                      f"(measured from two half-estimates"
+                      + (f"; target {target:g} dB)" if target is not None else ")")))
+    if "effective_snr_db" in meta:
+        lines.append(("effective SNR", f"{meta['effective_snr_db']:.1f} dB (Monte-Carlo and "
+                      f"added noise together, in the --snr-db definition)"))
+    return lines
+
+
+def _volume(f: dict, problems: list) -> list[tuple[str, str]]:
     vol: h5py.Dataset = f["volume"]
     bounds = f["bounds"]
     shape = vol.shape
     size = voxel_spacing(bounds, shape)
     peak, argmax, offset = 0.0, None, 0
+    bad, first = 0, None
     for slab in _slabs(vol):
         mag = np.abs(slab)
+        finite = np.isfinite(mag)
+        if not finite.all():
+            bad += int((~finite).sum())
+            first = offset + int(np.argmin(finite.reshape(len(slab), -1).all(axis=1))) \
+                if first is None else first
+            mag = np.where(finite, mag, 0)
         i = int(np.argmax(mag))
         if mag.flat[i] > peak or argmax is None:
             peak, argmax = float(mag.flat[i]), offset * mag[0].size + i
         offset += len(slab)
     where = np.unravel_index(argmax, shape)
     centres = [np.linspace(lo, hi, k)[j] for (lo, hi), k, j in zip(bounds, shape, where)]
+    if bad:
+        problems.append(f"dataset 'volume' contains {bad} NaN or inf values "
+                        f"(first in x slice {first})")
     lines = [
         ("method", f["method"]),
         ("shape", " x ".join(map(str, shape)) + f" voxels (complex64, {vol.size} total)"),
