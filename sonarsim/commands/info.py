@@ -30,9 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..dataset.reader import _check_file
     path = Path(args.file)
-    if not path.exists():
-        raise FormatError(f"{path}: no such file")
+    _check_file(path)                   # not a file / not HDF5: a user mistake (exit 2)
     try:
         lines, problems = describe_and_check(path)
     except FormatError as exc:          # not even the schema could be read
