@@ -52,7 +52,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.fft
@@ -61,15 +61,17 @@ from . import __version__
 from .dataset import DatasetStreamWriter, TransientsLayout, inspect
 from .errors import FormatError, InputError
 from .geometry import CropWindow, Poses, crop_window
-from .render import DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, aligned_window, iter_render
+from .render import (DEFAULT_BEAMS, DEFAULT_MEMORY_BUDGET, DEFAULT_SOUND_SPEED, PathWindow,
+                     aligned_window, choose_chunk_size)
 from .scene import SceneSpec
-from .signals import PULSE_HELP, REFERENCE_PULSE_SAMPLES, Pulse, fft_upsample, noise_sigma
+from .signals import PULSE_HELP, REFERENCE_PULSE_SAMPLES, Pulse, analytic, fft_upsample
 from .signals import pulse_from_spec as make_pulse   # the name benchmarks/table2.py uses
+from .fidelity import PingStats, mc_snr_from_energies, noise_budget, snr_db
+from .halves import (Estimator, HalfRenderer, Sampling, default_surface_spacing, half_seed,
+                     make_integrator)
+from .progress import progress_bar
 from .threads import dr_threads
 
-# Waveforms are energy histograms ⊗ pulse: amplitudes fall as 1/(r_T² r_R²) (the reference's
-# intensity mode, DESIGN §4), unlike measured pressure (∝ 1/(r_T r_R)); docs/formats.md.
-AMPLITUDE_MODEL = "intensity"
 NOISE_STREAM = 0x6E6F6973   # spawn key that separates the noise generators from other uses
 CONVOLVE_BLOCK = 128        # pings per FFT block (bounds the temporary arrays)
 
@@ -97,6 +99,8 @@ def transients_to_waveforms(hist: np.ndarray, pulse_os: np.ndarray, oversample: 
 
     Sums the bounces ``bounce_index`` (0-based; default all), convolves (linearly, by FFT)
     with ``pulse_os`` (the pulse at fs·K, sample 0 at t = 0) and keeps bins 0, K, 2K, ...
+    Complex histograms (amplitude models 'pressure', 'coherent') are convolved with the
+    analytic pulse p + i·H{p} and the real part is kept.
     """
     hist = np.asarray(hist)
     if hist.ndim != 3:
@@ -106,9 +110,19 @@ def transients_to_waveforms(hist: np.ndarray, pulse_os: np.ndarray, oversample: 
     if n_samples * k > n_bins:
         raise InputError(f"{n_samples} samples x oversample {k} exceed the {n_bins} bins")
     index = list(range(hist.shape[1])) if bounce_index is None else list(bounce_index)
+    out = np.empty((hist.shape[0], n_samples), np.float32)
+    if np.iscomplexobj(hist):
+        # Complex amplitudes A·e^{iφ}: Re(A e^{iφ} (p + i·H p)), the pulse shifted in phase by φ.
+        n_fft = scipy.fft.next_fast_len(n_bins + len(pulse_os) - 1)
+        pulse_spectrum = scipy.fft.fft(analytic(pulse_os), n_fft)
+        for a in range(0, hist.shape[0], CONVOLVE_BLOCK):
+            block = hist[a:a + CONVOLVE_BLOCK][:, index].sum(axis=1, dtype=np.complex128)
+            full = scipy.fft.ifft(scipy.fft.fft(block, n_fft, axis=-1) * pulse_spectrum,
+                                  n_fft, axis=-1)
+            out[a:a + CONVOLVE_BLOCK] = full[:, :n_samples * k:k].real
+        return out
     n_fft = scipy.fft.next_fast_len(n_bins + len(pulse_os) - 1, real=True)
     pulse_spectrum = scipy.fft.rfft(pulse_os, n_fft)
-    out = np.empty((hist.shape[0], n_samples), np.float32)
     for a in range(0, hist.shape[0], CONVOLVE_BLOCK):
         block = hist[a:a + CONVOLVE_BLOCK][:, index].sum(axis=1, dtype=np.float64)
         full = scipy.fft.irfft(scipy.fft.rfft(block, n_fft, axis=-1) * pulse_spectrum, n_fft,
@@ -131,12 +145,35 @@ def ping_noise(seed: int, start: int, stop: int, n_samples: int) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- pipeline
 
+DEFAULT_MC_SNR_DB = 30.0          # --mc-snr-db default: Monte-Carlo SNR after matched filtering
+DEFAULT_PATHS_PER_POSE = 10_000   # the pilot's base density (and the integrator's paths)
+MAX_AUTO_PATHS = 1_000_000        # the most paths per pose the automatic density chooses
+MIN_AUTO_SPACING = 2e-4           # m: the finest surface strata the automatic density chooses
+PILOT_POSES = 24                  # poses of the pilot runs (evenly spread over the trajectory)
+PILOT_SCALES = (0.25, 1.0)        # pilot densities relative to the base density
+PILOT_REFINEMENTS = 1             # extra pilot runs at the planned density, to refit
+AUTO_MARGIN_DB = 1.0              # aim this much above the target (the pilot is an estimate)
+SHORTFALL_DB = 0.5                # a measured SNR this far below the target is reported
+# Keys measured during a run and added to the dataset's meta when it is finished.
+MEASURED_KEYS = ("mc_snr_db", "mc_noise_power", "effective_snr_db", "mc_snr_raw_db",
+                 "noise_sigma")
+
+
 @dataclass
 class SimulationSettings:
-    """Everything that determines a simulated dataset besides the scene and the poses."""
+    """Everything that determines a simulated dataset besides the scene and the poses.
+
+    Sampling density: ``paths_per_pose`` (TX-cone paths, both half-estimates together) and
+    ``surface_spacing`` (the surface estimator of bounce 1, if the integrator has one).
+    If both are None the density is chosen by a pilot run to reach ``mc_snr_db``
+    (default :data:`DEFAULT_MC_SNR_DB`) Monte-Carlo SNR after matched filtering.
+    ``amplitude``: 'intensity' | 'pressure' | 'coherent'; ``speckle_seed`` seeds the
+    coherent model's phases; ``bounce1``: the integrator's bounce-1 estimator (None: its
+    default). ``log``: where one-line notices go (default: stderr).
+    """
     pulse: Pulse
     snr_db: float | None = None
-    paths_per_pose: int = 10_000
+    paths_per_pose: int | None = None
     bounces: int = 3
     bounce_set: tuple[int, ...] | None = None     # 1-based; None = all rendered
     oversample: int = 20
@@ -147,29 +184,73 @@ class SimulationSettings:
     chunk_size: int | None = None
     threads: int | None = None                    # Dr.Jit threads; None: all (Dr.Jit's default)
     extra_meta: dict = field(default_factory=dict)
+    mc_snr_db: float | None = None
+    surface_spacing: float | None = None
+    amplitude: str = "intensity"
+    speckle_seed: int = 0
+    bounce1: str | None = None
+    log: Callable[[str], None] | None = None
 
     def validate(self) -> None:
-        for name, lo in (("paths_per_pose", 1), ("bounces", 1), ("oversample", 1), ("seed", 0)):
+        for name, lo in (("bounces", 1), ("oversample", 1), ("seed", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value or value < lo:
                 raise InputError(f"{name} must be an integer >= {lo}, got {value}")
-        if self.seed >= 2**32:
-            raise InputError(f"seed must be < 2^32, got {self.seed}")
+        if self.paths_per_pose is not None and (
+                isinstance(self.paths_per_pose, bool) or int(self.paths_per_pose) != self.paths_per_pose
+                or self.paths_per_pose < 2):
+            raise InputError(f"paths_per_pose must be an integer >= 2 (two half-estimates), "
+                             f"got {self.paths_per_pose}")
+        if self.surface_spacing is not None and not (math.isfinite(self.surface_spacing)
+                                                     and self.surface_spacing > 0):
+            raise InputError(f"surface_spacing must be positive, got {self.surface_spacing}")
+        if self.seed >= 2**31:
+            raise InputError(f"seed must be < 2^31, got {self.seed}")
         if self.bounce_set is not None:
             if not self.bounce_set or any(b < 1 or b > self.bounces for b in self.bounce_set):
                 raise InputError(f"bounce set {list(self.bounce_set)} must be within "
                                  f"1..{self.bounces} (the rendered bounces)")
-        if self.snr_db is not None and not math.isfinite(self.snr_db):
-            raise InputError(f"snr_db must be finite, got {self.snr_db}")
+        for name in ("snr_db", "mc_snr_db"):
+            value = getattr(self, name)
+            if value is not None and not math.isfinite(value):
+                raise InputError(f"{name} must be finite, got {value}")
         if not (math.isfinite(self.sound_speed) and self.sound_speed > 0):
             raise InputError(f"sound_speed must be positive, got {self.sound_speed}")
         if self.threads is not None and (int(self.threads) != self.threads or self.threads < 1):
             raise InputError(f"threads must be a positive integer, got {self.threads}")
+        self.estimator.validate()
+        if self.keep_transients and self.estimator.complex:
+            raise InputError(f"--keep-transients stores energy histograms; amplitude "
+                             f"'{self.amplitude}' renders complex ones (not stored)")
 
     @property
     def bounce_index(self) -> list[int]:
         chosen = self.bounce_set or tuple(range(1, self.bounces + 1))
         return sorted({b - 1 for b in chosen})
+
+    @property
+    def estimator(self) -> Estimator:
+        return Estimator(self.bounce1, self.amplitude, int(self.speckle_seed))
+
+    @property
+    def automatic(self) -> bool:
+        """Whether the sampling density is chosen from ``mc_snr_db`` by a pilot run."""
+        return self.paths_per_pose is None and self.surface_spacing is None
+
+    @property
+    def target_mc_snr_db(self) -> float | None:
+        """The Monte-Carlo SNR the run aims at (None: explicit density, no target)."""
+        if self.mc_snr_db is not None:
+            return float(self.mc_snr_db)
+        return DEFAULT_MC_SNR_DB if self.automatic else None
+
+    def say(self, message: str) -> None:
+        (self.log or _stderr)(message)
+
+
+def _stderr(message: str) -> None:
+    import sys
+    print(f"sonarsim simulate: {message}", file=sys.stderr)
 
 
 def scratch_path(out: Path) -> Path:
@@ -184,7 +265,9 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
 
     ``resume``: continue an interrupted run with the same settings (else start over).
     ``on_chunk(stop, n)`` is called after each rendered chunk is stored (for progress
-    reports and tests). Returns the output path.
+    reports and tests). Returns the output path. The dataset's meta records the sampling
+    density used and the measured fidelity (``mc_snr_db``; with noise also
+    ``effective_snr_db``; :mod:`sonarsim.fidelity`).
     """
     settings.validate()
     out = Path(out)
@@ -192,6 +275,9 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
         raise InputError(f"{out}: output directory does not exist")
     pulse = settings.pulse
     crop, window = simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
+    scene = spec.to_mitsuba()
+    with dr_threads(settings.threads):
+        sampling, choice = choose_sampling(scene, poses, settings, crop, window)
     gt = spec.gt_mesh()
     common = dict(
         n_samples=crop.num_samples, tx=poses.tx, rx=poses.rx, boresight=poses.tx_boresight,
@@ -202,14 +288,15 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
         gt_vertices=np.asarray(gt.vertices, float) if len(gt.faces) else None,
         gt_faces=np.asarray(gt.faces, np.int64) if len(gt.faces) else None,
         seed=int(settings.seed))
-    meta = _meta(spec, settings, crop, window)
+    meta = _meta(spec, settings, crop, window, sampling, choice)
     meta["run_id"] = _run_id(common, meta)
     layout = None
     if settings.keep_transients:
         layout = TransientsLayout(settings.bounces, window.n_bins, window.path_start,
                                   window.bin_width, float(settings.sound_speed), pulse.fs,
-                                  int(settings.oversample), {"paths_per_pose": settings.paths_per_pose,
-                                                             "seed": int(settings.seed)})
+                                  int(settings.oversample),
+                                  {"paths_per_pose": sampling.paths_per_pose,
+                                   "seed": int(settings.seed)})
     noisy = settings.snr_db is not None
     first = scratch_path(out) if noisy else out
     if not resume:
@@ -219,27 +306,42 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
         with contextlib.suppress(FileNotFoundError):
             scratch_path(out).unlink()
 
-    if not (noisy and _scratch_matches(first, meta)):
+    measured = _scratch_measures(first, meta) if noisy else None
+    if measured is None:
         writer = _open_writer(first, common, meta, layout, None)
         try:
-            _render_into(writer, spec, poses, settings, crop, window, progress, on_chunk)
-            writer.finish()
+            _render_into(writer, scene, poses, settings, sampling, crop, window, progress,
+                         on_chunk)
+            totals = {name: float(np.sum(writer.stats(name))) for name in PingStats.NAMES}
+            measured = {"mc_snr_db": mc_snr_from_energies(totals["mf_total"], totals["mf_noise"]),
+                        "mc_noise_energy": totals["raw_noise"]}
+            if not noisy:
+                _report_shortfall(settings, measured["mc_snr_db"], choice)
+            writer.finish(measured)
         finally:
             writer.close()
         if not noisy:
             return out
 
-    # Noise pass: noiseless scratch -> noisy output.
+    # Noise pass: noiseless scratch -> noisy output; the added noise tops the MC noise up.
     with inspect(first) as (_, fields):
         clean = np.asarray(fields["waveforms"][()], np.float32)
-        sigma = noise_sigma(clean, float(settings.snr_db))
-        writer = _open_writer(out, common, meta | {"noise_sigma": sigma},
-                              layout, float(settings.snr_db))
+        budget = noise_budget(clean, float(settings.snr_db), measured["mc_noise_energy"])
+        if not budget.reachable:
+            settings.say(f"the Monte-Carlo noise alone gives an SNR of {budget.effective_snr_db:.1f} "
+                         f"dB (definition of --snr-db), below the requested {settings.snr_db:g} "
+                         f"dB: no noise added; raise --mc-snr-db or the sampling density")
+        else:
+            _report_shortfall(settings, measured["mc_snr_db"], choice)
+        final = {"mc_snr_db": measured["mc_snr_db"], "mc_noise_power": budget.mc_power,
+                 "noise_sigma": budget.sigma, "effective_snr_db": budget.effective_snr_db,
+                 "mc_snr_raw_db": snr_db(budget.signal_power, budget.mc_power)}
+        writer = _open_writer(out, common, meta | final, layout, float(settings.snr_db))
         try:
             chunk = max(1, settings.chunk_size or 1024)
             for start, stop in writer.missing_ranges(chunk):
                 noise = ping_noise(settings.seed, start, stop, crop.num_samples)
-                wf = (clean[start:stop] + sigma * noise).astype(np.float32)
+                wf = (clean[start:stop] + budget.sigma * noise).astype(np.float32)
                 tr = None
                 if layout is not None:
                     tr = fields["transients"]["transients"][start:stop]
@@ -251,18 +353,214 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
     return out
 
 
-def _meta(spec: SceneSpec, s: SimulationSettings, crop: CropWindow, window: PathWindow) -> dict:
-    return {"scene": spec.name, "scene_source": spec.source,
+def _report_shortfall(settings: SimulationSettings, measured: float, choice: dict) -> None:
+    """Say once that the run missed its Monte-Carlo SNR target (unless already said)."""
+    target = settings.target_mc_snr_db
+    if target is None or choice.get("warned") or not measured < target - SHORTFALL_DB:
+        return
+    settings.say(f"measured Monte-Carlo SNR {measured:.1f} dB after matched filtering, below "
+                 f"the requested {target:g} dB ({choice.get('sampling', '')}); raise the "
+                 f"sampling density (--paths-per-pose, --surface-spacing)")
+
+
+# ----------------------------------------------------------------------------- density
+
+def pilot_indices(n: int, count: int = PILOT_POSES) -> np.ndarray:
+    """``count`` pose indices spread evenly over 0..n−1 (all of them if n <= count)."""
+    if n <= count:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, count)).astype(int))
+
+
+def _groups(settings: SimulationSettings, sampling: Sampling) -> dict[str, list[int]]:
+    """Bounce indices (0-based, summed into the waveforms) per sampling control: 'surface'
+    (bounce 1 by the surface estimator, density 1/surface_spacing²) and 'paths' (the
+    TX-cone paths: bounces >= 2, and bounce 1 with the cone estimator)."""
+    chosen = settings.bounce_index
+    if sampling.surface_spacing is None:
+        return {"paths": chosen}
+    out = {"surface": [b for b in chosen if b == 0], "paths": [b for b in chosen if b > 0]}
+    return {k: v for k, v in out.items() if v}
+
+
+def measure_fidelity(scene, poses: Poses, settings: SimulationSettings, sampling: Sampling,
+                     crop: CropWindow, window: PathWindow, seed: int | None = None) -> dict:
+    """Render ``poses`` at ``sampling`` and measure their Monte-Carlo SNR (no file written).
+
+    Returns {'mc_snr_db', 'mf_total', 'mf_noise', 'groups': {name: noise energy},
+    'seconds'}: matched-filter energies summed over the poses, the noise also split by
+    sampling control (:func:`_groups`).
+    """
+    import time
+    from .fidelity import mf_energy
+    renderer = HalfRenderer(scene, settings.bounces, settings.beams, settings.estimator,
+                            sampling, window, settings.seed if seed is None else seed)
+    pulse_os = oversampled_pulse(settings.pulse.samples, settings.oversample)
+    chunk = _chunk_size(settings, sampling, window, len(poses))
+    groups = _groups(settings, sampling)
+    total = noise = 0.0
+    by_group = dict.fromkeys(groups, 0.0)
+    t0 = time.perf_counter()
+    for a in range(0, len(poses), chunk):
+        sl = slice(a, min(len(poses), a + chunk))
+        mean, diff = renderer.render(poses, sl)
+        stats = _chunk_stats(mean, diff, pulse_os, settings, crop)[1]
+        total += float(stats.mf_total.sum())
+        noise += float(stats.mf_noise.sum())
+        for name, index in groups.items():
+            d = transients_to_waveforms(diff, pulse_os, settings.oversample, crop.num_samples,
+                                        index)
+            by_group[name] += float(mf_energy(d, settings.pulse.samples).sum())
+    return {"mc_snr_db": mc_snr_from_energies(total, noise), "mf_total": total,
+            "mf_noise": noise, "groups": by_group, "seconds": time.perf_counter() - t0}
+
+
+def choose_sampling(scene, poses: Poses, settings: SimulationSettings, crop: CropWindow,
+                    window: PathWindow) -> tuple[Sampling, dict]:
+    """The sampling density of a run and a record of how it was chosen.
+
+    Explicit settings are used as given (paths rounded up to an even count). Otherwise a
+    pilot renders :data:`PILOT_POSES` poses spread over the trajectory at two densities
+    (:data:`PILOT_SCALES` of the base density) and measures the Monte-Carlo noise after
+    matched filtering of each sampling control (surface strata for bounce 1, TX-cone
+    paths for the rest: :func:`_groups`) at both. Each control's noise is fitted by a
+    power law in its density (dB per decade, clamped to 10..40: independent samples give
+    10, stratified quadrature more); the noise budget for the target plus
+    :data:`AUTO_MARGIN_DB` is shared in proportion to the square roots of the pilot noises
+    (the cost-optimal split for equal costs and 1/N noise), and each density is set to
+    meet its share, with at most :data:`MAX_AUTO_PATHS` paths per pose and strata no
+    smaller than :data:`MIN_AUTO_SPACING`. If a cap binds the run says so once, with the
+    SNR it expects.
+    """
+    integrator = make_integrator(settings.bounces, settings.beams, settings.estimator)
+    spacing = (settings.surface_spacing if settings.surface_spacing is not None
+               else default_surface_spacing(integrator))
+    paths = settings.paths_per_pose or DEFAULT_PATHS_PER_POSE
+    base = Sampling(int(paths) + int(paths) % 2, spacing)
+    if not settings.automatic:
+        return base, {"mode": "explicit", "sampling": base.describe()}
+    target = settings.target_mc_snr_db
+    sub = poses[pilot_indices(len(poses))]
+    pilot_seed = half_seed(settings.seed ^ 0x5EED, 0) >> 1
+    runs = []
+    for scale in PILOT_SCALES:
+        s = base.scaled(scale, MAX_AUTO_PATHS)
+        runs.append((s, measure_fidelity(scene, sub, settings, s, crop, window, pilot_seed)))
+    record = {"mode": f"automatic (target {target:g} dB)", "pilot_poses": len(sub)}
+    for _ in range(PILOT_REFINEMENTS + 1):
+        (s0, r0), (s1, r1) = runs[-2:]
+        plan = _plan(base, s0, r0, s1, r1, target)
+        if plan is None:                      # no signal or no noise: any density will do
+            record["sampling"] = base.describe()
+            break
+        chosen, want, expected, slopes = plan
+        record.update(slopes_db_per_decade={g: round(v, 2) for g, v in slopes.items()},
+                      sampling=chosen.describe(), expected_mc_snr_db=round(expected, 2))
+        if abs(expected - r1["mc_snr_db"]) < AUTO_MARGIN_DB or chosen in (s0, s1):
+            break                             # the last pilot already measured this density
+        runs.append((chosen, measure_fidelity(scene, sub, settings, chosen, crop, window,
+                                              pilot_seed)))
+    record["pilot"] = [{"sampling": s.describe(), "mc_snr_db": round(r["mc_snr_db"], 2)}
+                       for s, r in runs]
+    if plan is None:
+        return base, record
+    if want != chosen and expected < target:
+        settings.say(f"a Monte-Carlo SNR of {target:g} dB after matched filtering needs about "
+                     f"{want.describe()} (pilot on {len(sub)} poses: {r1['mc_snr_db']:.1f} dB at "
+                     f"{s1.describe()}); the density is capped at {chosen.describe()}, which "
+                     f"should give about {expected:.1f} dB")
+        record["warned"] = True
+    return chosen, record
+
+
+def _plan(base: Sampling, s0: Sampling, r0: dict, s1: Sampling, r1: dict, target: float):
+    """(chosen, wanted without caps, expected SNR of chosen, slopes) from two pilot runs
+    (see :func:`choose_sampling`), or None without signal or noise."""
+    signal = r1["mf_total"] - r1["mf_noise"]
+    if not (signal > 0 and r1["mf_noise"] > 0):
+        return None
+    budget = signal * 10.0 ** (-(target + AUTO_MARGIN_DB) / 10.0)
+
+    def gain(g: str, a: Sampling, b: Sampling) -> float:
+        """Decades of density of control g from a to b."""
+        if g == "paths":
+            return math.log10(b.paths_per_pose / a.paths_per_pose)
+        return 2 * math.log10(a.surface_spacing / b.surface_spacing)
+
+    roots = {g: math.sqrt(max(n, 0.0)) for g, n in r1["groups"].items()}
+    factors, slopes = {}, {}
+    for g, n1 in r1["groups"].items():
+        n0, dec = r0["groups"][g], gain(g, s0, s1)
+        slope = 10.0 * math.log10(n0 / n1) / dec if n0 > 0 and n1 > 0 and dec > 0.05 else 10.0
+        slopes[g] = min(40.0, max(10.0, slope))
+        share = budget * roots[g] / sum(roots.values()) if roots[g] > 0 else budget
+        factors[g] = (n1 / share) ** (10.0 / slopes[g]) if n1 > 0 else 1.0
+
+    def build(max_paths: int, min_spacing: float) -> Sampling:
+        sp = None
+        if s1.surface_spacing is not None:   # never coarser than the integrator's strata
+            sp = min(base.surface_spacing,
+                     max(min_spacing, s1.surface_spacing / math.sqrt(factors.get("surface", 1.0))))
+        p = min(int(max_paths), max(2, math.ceil(s1.paths_per_pose * factors.get("paths", 1.0))))
+        return Sampling(p + p % 2, sp)
+
+    def predicted(s: Sampling) -> float:
+        noise = sum(n1 * 10.0 ** (-slopes[g] * gain(g, s1, s) / 10.0)
+                    for g, n1 in r1["groups"].items())
+        return snr_db(signal, noise)
+
+    chosen = build(MAX_AUTO_PATHS, MIN_AUTO_SPACING)
+    return chosen, build(2**62, 0.0), predicted(chosen), slopes
+
+
+# ----------------------------------------------------------------------------- rendering
+
+def _chunk_size(s: SimulationSettings, sampling: Sampling, window: PathWindow, n: int) -> int:
+    """Poses per launch: two halves (complex: twice the bytes) within the memory budget."""
+    if s.chunk_size is not None:
+        return int(s.chunk_size)
+    budget = DEFAULT_MEMORY_BUDGET // (4 if s.estimator.complex else 2)
+    limit = choose_chunk_size(max(1, sampling.paths_per_pose // 2), s.bounces, window.n_bins,
+                              budget)
+    return max(1, math.ceil(n / math.ceil(n / limit))) if n else 1
+
+
+def _chunk_stats(mean: np.ndarray, diff: np.ndarray, pulse_os: np.ndarray,
+                 s: SimulationSettings, crop: CropWindow) -> tuple[np.ndarray, PingStats]:
+    """Waveforms of the mean histograms and the Monte-Carlo statistics of the chunk."""
+    both = transients_to_waveforms(np.concatenate([mean, diff]), pulse_os, s.oversample,
+                                   crop.num_samples, s.bounce_index)
+    wf, d = both[:len(mean)], both[len(mean):]
+    return wf, PingStats.measure(wf, d, s.pulse.samples)
+
+
+def _meta(spec: SceneSpec, s: SimulationSettings, crop: CropWindow, window: PathWindow,
+          sampling: Sampling, choice: dict) -> dict:
+    meta = {"scene": spec.name, "scene_source": spec.source,
             "box": np.stack([spec.box.lo, spec.box.hi], axis=1).tolist(),   # [[x0, x1], ...] m
-            "pulse_spec": s.pulse.spec, "paths_per_pose": int(s.paths_per_pose),
+            "pulse_spec": s.pulse.spec, "paths_per_pose": int(sampling.paths_per_pose),
             "bounces": int(s.bounces), "bounce_set": [b + 1 for b in s.bounce_index],
             "oversample": int(s.oversample), "beams": {**DEFAULT_BEAMS, **dict(s.beams or {})},
             "path_start": window.path_start, "path_bin_width": window.bin_width,
             "crop_min_dist": crop.min_dist, "crop_max_dist": crop.max_dist,
-            "amplitude_model": AMPLITUDE_MODEL,
-            "noise": "white Gaussian, sigma^2 = signal_power(noiseless) * 10^(-snr_db/10); "
+            "amplitude_model": s.amplitude,
+            "sampling": {k: v for k, v in choice.items() if k != "warned"},
+            "mc_estimate": "two independent half-estimates; mc_snr_db after matched filtering "
+                           "(docs/simulation.md)",
+            "noise": "white Gaussian; sigma^2 = P_s * 10^(-snr_db/10) - P_mc with P_s, P_mc the "
+                     "signal and Monte-Carlo noise power in the signal_power definition; "
                      "ping i seeded by (seed, i)",
             "generator": f"sonarsim {__version__} simulate", **s.extra_meta}
+    if sampling.surface_spacing is not None:
+        meta["surface_spacing"] = float(sampling.surface_spacing)
+    if s.bounce1 is not None:
+        meta["bounce1_estimator"] = s.bounce1
+    if s.amplitude == "coherent":
+        meta["speckle_seed"] = int(s.speckle_seed)
+    target = s.target_mc_snr_db
+    if target is not None:
+        meta["mc_snr_target_db"] = float(target)
+    return meta
 
 
 def _open_writer(path: Path, common: dict, meta: dict, layout, snr_db) -> DatasetStreamWriter:
@@ -273,18 +571,23 @@ def _open_writer(path: Path, common: dict, meta: dict, layout, snr_db) -> Datase
         raise FormatError(f"{exc} (or pass --restart)") from None
 
 
-def _scratch_matches(path: Path, meta: dict) -> bool:
-    """Whether a finished noiseless scratch file of this very run exists (else it is stale)."""
+def _scratch_measures(path: Path, meta: dict) -> dict | None:
+    """The measured values of a finished noiseless scratch file of this very run (None if
+    there is none; a stale one is deleted)."""
     if not path.is_file():
-        return False
+        return None
+    measured = None
     try:
         with inspect(path) as (_, fields):
-            same = _digest(fields["meta"]) == _digest(meta)
+            stored = dict(fields["meta"])
+            found = {k: stored.pop(k) for k in ("mc_snr_db", "mc_noise_energy") if k in stored}
+            if _digest(stored) == _digest(meta) and len(found) == 2:
+                measured = found
     except FormatError:
-        same = False
-    if not same:
+        measured = None
+    if measured is None:
         path.unlink()
-    return same
+    return measured
 
 
 def _run_id(common: dict, meta: dict) -> str:
@@ -304,40 +607,36 @@ def _digest(value) -> str:
     return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _render_into(writer: DatasetStreamWriter, spec: SceneSpec, poses: Poses,
-                 s: SimulationSettings, crop: CropWindow, window: PathWindow, progress: bool,
+def _render_into(writer: DatasetStreamWriter, scene, poses: Poses, s: SimulationSettings,
+                 sampling: Sampling, crop: CropWindow, window: PathWindow, progress: bool,
                  on_chunk: Callable[[int, int], None] | None) -> None:
-    """Render every pose the writer still lacks, chunk by chunk, and store its waveforms.
+    """Render every pose the writer still lacks, chunk by chunk, and store its waveforms
+    and per-ping Monte-Carlo statistics.
 
-    Poses are rendered by :func:`sonarsim.render.iter_render` over each contiguous run of
-    missing poses; a pose's random numbers depend on its global index only, so a resumed
-    run renders exactly what an uninterrupted one would.
+    A pose's random numbers depend on its global index only, so a resumed run renders
+    exactly what an uninterrupted one would.
     """
     spans = writer.missing_ranges(max(1, len(poses)))   # maximal runs of missing poses
     if not spans:
         return
-    scene = spec.to_mitsuba()
+    renderer = HalfRenderer(scene, s.bounces, s.beams, s.estimator, sampling, window, s.seed)
     pulse_os = oversampled_pulse(s.pulse.samples, s.oversample)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(poses), initial=writer.n_done, unit="ping", desc="simulate",
-                   dynamic_ncols=True, disable=None)
+    chunk = _chunk_size(s, sampling, window, sum(b - a for a, b in spans))
+    bar = progress_bar(len(poses), progress, unit="ping", desc="simulate",
+                       initial=writer.n_done)
     try:
         with dr_threads(s.threads):
             for first, end in spans:
-                for sl, hist in iter_render(scene, poses, paths_per_pose=s.paths_per_pose,
-                                            bounces=s.bounces, seed=s.seed,
-                                            chunk_size=s.chunk_size, beams=s.beams,
-                                            window=window, start=first, stop=end):
-                    wf = transients_to_waveforms(hist, pulse_os, s.oversample, crop.num_samples,
-                                                 s.bounce_index)
-                    writer.write(sl.start, wf, hist if writer.layout is not None else None)
-                    del hist
-                    if bar is not None:
-                        bar.update(sl.stop - sl.start)
+                for a in range(first, end, chunk):
+                    sl = slice(a, min(end, a + chunk))
+                    mean, diff = renderer.render(poses, sl)
+                    wf, stats = _chunk_stats(mean, diff, pulse_os, s, crop)
+                    del diff
+                    writer.write(sl.start, wf, mean if writer.layout is not None else None,
+                                 stats={k: getattr(stats, k) for k in PingStats.NAMES})
+                    del mean
+                    bar.update(sl.stop - sl.start)
                     if on_chunk is not None:
                         on_chunk(sl.stop, len(poses))
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()

@@ -21,12 +21,33 @@ PARITY_HELP = ("match the reference simulation (docs/simulation.md): isotropic T
                "(differences that remain: docs/simulation.md)")
 
 
-def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_help: str) -> None:
-    """Options shared by ``render`` and ``simulate``: sampling, window, physics, beams."""
+def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_help: str,
+                         paths_help: str = "default 10000", paths_default: int | None = 10_000
+                         ) -> None:
+    """Options shared by ``render`` and ``simulate``: sampling, estimator, amplitude model,
+    window, physics, beams."""
     from ..render import DEFAULT_SOUND_SPEED
     g = parser.add_argument_group("rendering")
-    g.add_argument("--paths-per-pose", type=int, default=10_000, metavar="N",
-                   help="Monte-Carlo paths per pose (default 10000)")
+    g.add_argument("--paths-per-pose", type=int, default=paths_default, metavar="N",
+                   help=f"TX-cone Monte-Carlo paths per pose: bounces >= 2, and bounce 1 with "
+                        f"--bounce1-estimator cone ({paths_help})")
+    g.add_argument("--bounce1-estimator", choices=("surface", "cone"), default=None,
+                   help="bounce-1 estimator: 'surface' (stratified quadrature over the "
+                        "surfaces with shadow rays; the integrator's default) or 'cone' "
+                        "(TX-cone path tracing, a cross-check)")
+    g.add_argument("--surface-spacing", type=float, default=None, metavar="M",
+                   help="strata size of the surface estimator in m (density 1/M^2; "
+                        "default: the integrator's, or chosen for --mc-snr-db)")
+    g.add_argument("--amplitude", choices=("intensity", "pressure", "coherent"),
+                   default=None,
+                   help="amplitude model: 'intensity' (energy histogram x pulse, the "
+                        "reference's; default, and what --reference-parity selects), "
+                        "'pressure' (b_T b_R / (2 pi r_T r_R) per scatterer, Lambertian) or "
+                        "'coherent' (pressure with a seeded random phase per surface "
+                        "scatterer: speckle); docs/simulation.md")
+    g.add_argument("--speckle-seed", type=int, default=0, metavar="S",
+                   help="seed of the coherent model's scatterer phases, independent of "
+                        "--seed (default 0)")
     g.add_argument("--bounces", type=int, default=None, metavar="B",
                    help=f"render bounces 1..B ({bounces_help})")
     g.add_argument("--oversample", type=int, default=20, metavar="K",
@@ -82,7 +103,20 @@ def beams_from_args(args: argparse.Namespace) -> dict:
 
 def check_common(args: argparse.Namespace) -> None:
     """Range checks of the shared options (one-line InputError)."""
-    for name in ("paths_per_pose", "oversample"):
+    if args.amplitude is None:
+        args.amplitude = "intensity"
+    elif args.reference_parity and args.amplitude != "intensity":
+        raise InputError(f"--reference-parity selects --amplitude intensity; it contradicts "
+                         f"--amplitude {args.amplitude}")
+    if args.surface_spacing is not None and not 1e-5 <= args.surface_spacing <= 10:
+        raise InputError(f"--surface-spacing must be in [1e-5, 10] m, got {args.surface_spacing}")
+    if args.surface_spacing is not None and args.bounce1_estimator == "cone":
+        raise InputError("--surface-spacing needs --bounce1-estimator surface")
+    if not 0 <= args.speckle_seed < 2**32:
+        raise InputError(f"--speckle-seed must be in [0, 2^32), got {args.speckle_seed}")
+    if args.paths_per_pose is not None and args.paths_per_pose < 1:
+        raise InputError(f"--paths-per-pose must be >= 1, got {args.paths_per_pose}")
+    for name in ("oversample",):
         if getattr(args, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.bounces is not None and args.bounces < 1:

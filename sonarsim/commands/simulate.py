@@ -15,11 +15,11 @@ from ._render_common import (add_render_arguments, add_scene_and_pose_arguments,
                              beams_from_args, check_common, parity_meta, parity_poses)
 
 HELP = "Simulate a sonar dataset (waveforms, pulse, geometry, ground truth) of a scene."
-EPILOG = ("Amplitude model: the waveforms are intensity-mode, as the reference's simulation: "
-          "the energy histogram over path length convolved with the pulse, so an echo's "
-          "amplitude falls as 1/(r_T^2 r_R^2). Real AirSAS waveforms are pressure, "
-          "~1/(r_T r_R). The dataset records meta amplitude_model = 'intensity' "
-          "(docs/simulation.md).")
+EPILOG = ("Fidelity: every pose is rendered as two independent half-estimates; their "
+          "difference measures the Monte-Carlo noise after matched filtering, stored as meta "
+          "mc_snr_db (with --snr-db also effective_snr_db: the added noise tops the Monte-Carlo "
+          "noise up to the requested total). Amplitude models and when to use which: "
+          "docs/simulation.md.")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,8 +43,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="also store the rendered transients in the dataset")
     s.add_argument("--restart", action="store_true",
                    help="discard the partial output of an interrupted run instead of resuming it")
+    s.add_argument("--mc-snr-db", type=float, default=None, metavar="X",
+                   help="Monte-Carlo SNR after matched filtering to reach (default 30 unless "
+                        "--paths-per-pose or --surface-spacing is given): a pilot on a few "
+                        "poses chooses the sampling density; the dataset records the "
+                        "measured value (meta mc_snr_db)")
     add_render_arguments(parser, bounces_help="default: the largest of --bounce-set, "
-                                               "else 3; 1 with --reference-parity")
+                                               "else 3; 1 with --reference-parity",
+                         paths_default=None,
+                         paths_help="default: chosen for --mc-snr-db; the two "
+                                    "half-estimates get half each")
 
 
 def parse_bounce_set(text: str | None) -> tuple[int, ...] | None:
@@ -76,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
                              f"--bounce-set {args.bounce_set}")
         bounce_set = REFERENCE_BOUNCES
     bounces = args.bounces or (max(bounce_set) if bounce_set else 3)
+    if args.mc_snr_db is not None and args.mc_snr_db != args.mc_snr_db:
+        raise InputError("--mc-snr-db must be a number")
+    if args.paths_per_pose is not None and args.paths_per_pose < 2:
+        raise InputError(f"--paths-per-pose must be >= 2 (two half-estimates), "
+                         f"got {args.paths_per_pose}")
     if args.pulse_samples is not None and args.pulse_samples < 2:
         raise InputError(f"--pulse-samples must be >= 2, got {args.pulse_samples}")
     spec = load_scene(args.scene)
@@ -85,11 +98,19 @@ def run(args: argparse.Namespace) -> int:
         paths_per_pose=args.paths_per_pose, bounces=bounces, bounce_set=bounce_set,
         oversample=args.oversample, sound_speed=args.sound_speed, seed=args.seed,
         beams=beams, keep_transients=args.keep_transients,
-        chunk_size=args.chunk_size, threads=args.threads,
+        chunk_size=args.chunk_size, threads=args.threads, mc_snr_db=args.mc_snr_db,
+        surface_spacing=args.surface_spacing, amplitude=args.amplitude,
+        speckle_seed=args.speckle_seed, bounce1=args.bounce1_estimator,
         extra_meta={"poses": str(args.poses), **parity_meta(args)})
     out = simulate(spec, poses, args.out, settings, resume=not args.restart,
                    progress=not args.no_progress)
-    noise = "noiseless" if args.snr_db is None else f"SNR {args.snr_db:g} dB"
-    print(f"wrote {out}: {len(poses)} pings, {noise}, pulse {settings.pulse.spec}",
+    from ..dataset import inspect
+    with inspect(out) as (_, fields):
+        meta = fields["meta"]
+    noise = ("noiseless" if args.snr_db is None
+             else f"effective SNR {meta.get('effective_snr_db', float('nan')):.1f} dB")
+    print(f"wrote {out}: {len(poses)} pings, {noise}, Monte-Carlo SNR "
+          f"{meta.get('mc_snr_db', float('nan')):.1f} dB after matched filtering "
+          f"({meta.get('paths_per_pose')} paths/pose), pulse {settings.pulse.spec}",
           file=sys.stderr)
     return 0

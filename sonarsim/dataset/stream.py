@@ -12,10 +12,10 @@ import h5py
 import numpy as np
 
 from ..errors import FormatError, InputError
-from .attributes import json_default
+from .attributes import check_attr_dict, decode_scalar, encode_attr, json_default
 from .checks import as_array, as_int
 from .h5io import PARTIAL_SUFFIX, PathLike, commit
-from .sonar_dataset import SonarDataset
+from .sonar_dataset import DATASET_ATTRS, SonarDataset
 from .transients import Transients
 
 @dataclass(frozen=True)
@@ -208,9 +208,12 @@ class DatasetStreamWriter:
             raise InputError(f"{self.partial_path}: stream writer is closed")
         return self._file
 
-    def write(self, start: int, waveforms, transients=None) -> None:
+    def write(self, start: int, waveforms, transients=None, stats=None) -> None:
         """Store pings ``start .. start + n - 1``: waveforms [n, T] (float32) and, if the
-        writer has a transients layout, transients [n, B, T_bins]."""
+        writer has a transients layout, transients [n, B, T_bins]. ``stats``: optional
+        mapping name -> float64 [n] of per-ping bookkeeping values (e.g. Monte-Carlo
+        noise energies), kept with the partial file for a resumed run (:meth:`stats`)
+        and dropped by :meth:`finish`."""
         f = self._require_open()
         start = as_int("start", start, minimum=0)
         dims: dict = {"T": (self.n_samples, "n_samples")}
@@ -226,18 +229,50 @@ class DatasetStreamWriter:
             tr = as_array("transients", transients, ("n", "B", "K"), np.float32, dims)
             f["transients/transients"][start:stop] = tr
         f["waveforms"][start:stop] = wf
+        for name, values in (stats or {}).items():
+            values = np.asarray(values, np.float64).reshape(-1)
+            if values.shape != (stop - start,):
+                raise InputError(f"stats '{name}' must have one value per ping ({stop - start})")
+            key = f"stream/stats/{name}"
+            if key not in f:
+                f.create_dataset(key, shape=(self.n_pings,), dtype=np.float64, fillvalue=0)
+            f[key][start:stop] = values
         f.flush()  # data on disk before the pings are marked done
         f["stream/done"][start:stop] = True
         f.flush()
 
-    def finish(self) -> Path:
-        """Complete the file and rename it to the final path atomically; returns it."""
+    def stats(self, name: str) -> np.ndarray | None:
+        """The per-ping values ``name`` stored by :meth:`write` (float64 [N], 0 for pings
+        not written), or None if none were stored."""
+        f = self._require_open()
+        key = f"stream/stats/{name}"
+        return np.asarray(f[key][()], np.float64) if key in f else None
+
+    def finish(self, meta=None) -> Path:
+        """Complete the file and rename it to the final path atomically; returns it.
+
+        ``meta``: free-form values known only at the end (e.g. measured statistics),
+        added to the dataset's meta."""
         f = self._require_open()
         done = self.done
         if not done.all():
             missing = np.flatnonzero(~done)
             raise InputError(f"{self.partial_path}: {missing.size} pings not written yet "
                              f"(first: {int(missing[0])})")
+        if meta:
+            extra = check_attr_dict("meta", meta, DATASET_ATTRS)
+            json_keys = [decode_scalar(k) for k in np.atleast_1d(f.attrs.get("json_keys", []))]
+            for key, value in extra.items():
+                stored, is_json = encode_attr(key, value)
+                f.attrs[key] = stored
+                if is_json and key not in json_keys:
+                    json_keys.append(key)
+                elif not is_json and key in json_keys:
+                    json_keys.remove(key)
+            if json_keys:
+                f.attrs["json_keys"] = json_keys
+            elif "json_keys" in f.attrs:
+                del f.attrs["json_keys"]
         del f["stream"]
         f.attrs["complete"] = True
         f.flush()

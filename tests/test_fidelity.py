@@ -1,0 +1,131 @@
+"""Measured fidelity: the Monte-Carlo SNR a dataset reports against the spread between two
+seeds, the total effective SNR of --snr-db, the unchanged additive-noise definition, the
+automatic density and its one-line shortfall notice."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sonarsim import simulate as sim
+from sonarsim.dataset import SonarDataset
+from sonarsim.fidelity import mf_energy, noise_budget
+from sonarsim.geometry import trajectory
+from sonarsim.halves import HalfRenderer, half_seed
+from sonarsim.scene import load_scene
+from sonarsim.signals import matched_filter, noise_sigma, pulse_from_spec, signal_power
+
+FS = 100e3
+
+
+def settings(**kw) -> sim.SimulationSettings:
+    base = dict(pulse=pulse_from_spec("lfm-20k", FS), bounces=2, seed=1, paths_per_pose=4000)
+    base.update(kw)
+    return sim.SimulationSettings(**base)
+
+
+def mf_total(w: np.ndarray, pulse: np.ndarray) -> float:
+    """Σ|MF(w)|² by the library's linear matched filter (not the Parseval shortcut)."""
+    return float(np.sum(np.abs(matched_filter(w.astype(float), pulse, mode="linear")) ** 2))
+
+
+@pytest.fixture(scope="module")
+def sphere_scan():
+    spec = load_scene("sphere")
+    return spec, trajectory("cylindrical:12:2", box=spec.box)
+
+
+def test_mf_energy_is_the_linear_correlation_energy():
+    rng = np.random.default_rng(3)
+    w, p = rng.standard_normal((4, 57)), rng.standard_normal(9)
+    direct = [np.sum(np.correlate(row, p, mode="full") ** 2) for row in w]
+    np.testing.assert_allclose(mf_energy(w, p), direct, rtol=1e-10)
+
+
+def test_additive_noise_definition_unchanged_and_topped_up():
+    rng = np.random.default_rng(0)
+    clean = np.zeros((5, 200))
+    clean[:, 40:120] = rng.standard_normal((5, 80))
+    # Without Monte-Carlo noise: exactly the signal_power / noise_sigma definition.
+    b = noise_budget(clean, 20.0, 0.0)
+    assert b.sigma == pytest.approx(noise_sigma(clean, 20.0), rel=1e-12)
+    assert b.effective_snr_db == pytest.approx(20.0, abs=1e-9) and b.reachable
+    # With MC noise power P_mc over the 400 support samples: sigma^2 = P_s 10^-2 - P_mc.
+    p_mc = 1e-3 * signal_power(clean)
+    b = noise_budget(clean, 20.0, p_mc * 400)
+    p_s = signal_power(clean) - p_mc
+    assert b.sigma ** 2 == pytest.approx(p_s * 1e-2 - p_mc, rel=1e-9)
+    assert b.effective_snr_db == pytest.approx(20.0, abs=1e-9)
+    # MC noise above the budget: nothing added, the shortfall is reported.
+    b = noise_budget(clean, 40.0, p_mc * 400)
+    assert b.sigma == 0.0 and not b.reachable and b.effective_snr_db == pytest.approx(30.0, abs=0.01)
+
+
+def test_half_seeds_are_distinct():
+    seeds = {half_seed(s, h) for s in range(2000) for h in (0, 1)}
+    assert len(seeds) == 4000
+
+
+def _spread_snr(w1: np.ndarray, w2: np.ndarray, pulse: np.ndarray) -> float:
+    """MC SNR of one dataset after matched filtering from two independent seeds."""
+    noise = mf_total(w1 - w2, pulse) / 2                 # one dataset's MC noise energy
+    signal = (mf_total(w1, pulse) + mf_total(w2, pulse)) / 2 - noise
+    return 10 * np.log10(signal / noise)
+
+
+def test_mc_snr_matches_the_spread_between_two_seeds(sphere_scan, tmp_path, monkeypatch):
+    spec, poses = sphere_scan
+    ds = [SonarDataset.read(sim.simulate(spec, poses, tmp_path / f"s{seed}.h5",
+                                         settings(seed=seed)))
+          for seed in (1, 2, 3, 4)]
+    spread = np.mean([_spread_snr(ds[i].waveforms, ds[j].waveforms, ds[0].pulse)
+                      for i, j in ((0, 1), (2, 3))])
+    assert 5 < spread < 25                              # MC noise clearly present
+    reported = [d.meta["mc_snr_db"] for d in ds]
+    assert np.mean(reported) == pytest.approx(spread, abs=0.75)
+    assert max(abs(r - spread) for r in reported) < 1.5
+    # The two-launch fallback (integrators without halves=True) measures the same noise.
+    monkeypatch.setattr(HalfRenderer, "__init__", _fallback_init(HalfRenderer.__init__))
+    fb = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "fb.h5", settings(seed=5)))
+    assert fb.meta["mc_snr_db"] == pytest.approx(spread, abs=1.5)
+
+
+def _fallback_init(init):
+    def patched(self, *args, **kw):
+        init(self, *args, **kw)
+        self.native_halves = False
+    return patched
+
+
+def test_snr_db_20_gives_total_effective_snr_20(sphere_scan, tmp_path):
+    """Measured from two seeds: the added noise accounts for the MC noise already there."""
+    spec, poses = sphere_scan
+    kw = dict(snr_db=20.0, paths_per_pose=30_000)
+    ds = [SonarDataset.read(sim.simulate(spec, poses, tmp_path / f"n{seed}.h5",
+                                         settings(seed=seed, **kw)))
+          for seed in (1, 2)]
+    clean = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "c.h5",
+                                           settings(seed=1, paths_per_pose=30_000)))
+    # Strong enough MC noise that ignoring it would miss 20 dB by more than 0.5 dB.
+    assert ds[0].meta["mc_snr_raw_db"] < 26
+    support = np.abs(clean.waveforms) > 1e-6 * np.abs(clean.waveforms).max()
+    w1, w2 = (d.waveforms.astype(float) for d in ds)
+    noise = np.mean(((w1 - w2)[support]) ** 2) / 2       # MC + added, one dataset
+    signal = np.mean((((w1 + w2) / 2)[support]) ** 2) - noise / 2
+    assert 10 * np.log10(signal / noise) == pytest.approx(20.0, abs=0.5)
+    assert ds[0].meta["effective_snr_db"] == pytest.approx(20.0, abs=1e-6)
+
+
+def test_automatic_density_reaches_its_target_and_says_so_once(tmp_path, monkeypatch):
+    spec = load_scene("sphere")
+    poses = trajectory("cylindrical:4:2", box=spec.box)
+    messages: list[str] = []
+    s = settings(paths_per_pose=None, mc_snr_db=22.0, log=messages.append)
+    ds = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "auto.h5", s))
+    assert ds.meta["mc_snr_db"] >= 22.0 - sim.SHORTFALL_DB and messages == []
+    assert ds.meta["sampling"]["mode"].startswith("automatic")
+    # Capped density: one notice before the run, none after it.
+    monkeypatch.setattr(sim, "MAX_AUTO_PATHS", 2000)
+    s = settings(paths_per_pose=None, mc_snr_db=40.0, log=messages.append)
+    ds = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "capped.h5", s))
+    assert len(messages) == 1 and "capped" in messages[0] and ds.meta["paths_per_pose"] == 2000
+    assert ds.meta["mc_snr_db"] < 40.0
