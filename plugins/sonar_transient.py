@@ -58,6 +58,11 @@ MAX_BOUNCES_LIMIT = 64
 _PISTON_HALF_POWER_X = 1.616339948
 _PISTON_FIRST_NULL_X = 3.831705970
 _PISTON_MAIN_LOBE_FRACTION = 0.9   # share of TX samples drawn inside the main lobe
+AMPLITUDES = ("intensity", "pressure", "coherent")
+BOUNCE1_ESTIMATORS = ("surface", "cone")
+DEFAULT_SURFACE_SPACING = 5e-3     # m: longest edge of the bounce-1 quadrature's facets
+DEFAULT_PATH_SAMPLES = 8           # path-length quantiles splatted per facet
+DEFAULT_SPECKLE_SPACING = 3e-3     # m: scatterer cells of the 'coherent' amplitude
 
 
 def piston_ka(beamwidth_deg: float) -> float:
@@ -65,7 +70,7 @@ def piston_ka(beamwidth_deg: float) -> float:
     return _PISTON_HALF_POWER_X / math.sin(math.radians(beamwidth_deg) / 2.0)
 
 
-def _bessel_j1_over_x(dr, mi, x):
+def _bessel_j1_over_x(x):
     """J1(x)/x for x >= 0 (Abramowitz & Stegun 9.4.4 and 9.4.6, |error| < 1e-7)."""
     y = (x * (1.0 / 3.0)) ** 2
     small = 0.5 + y * (-0.56249985 + y * (0.21093573 + y * (-0.03954289 + y * (
@@ -81,7 +86,8 @@ def _bessel_j1_over_x(dr, mi, x):
 
 
 class _Beam:
-    """A beam pattern: gain ``b(θ)`` (1 on the axis) and, for the TX, direction sampling.
+    """A beam pattern: intensity gain ``b(θ)`` and pressure gain ``a(θ)`` (both 1 on the
+    axis) and, for the TX, direction sampling.
 
     Per-call constants are made opaque when the kernel is built (:meth:`opaque`), so the
     beamwidth never forces a recompilation.
@@ -111,22 +117,29 @@ class _Beam:
     def describe(self) -> str:
         return "isotropic" if self.kind == "isotropic" else f"{self.kind} {self.beamwidth_deg:g}°"
 
-    def opaque(self, dr, mi) -> dict:
+    def opaque(self) -> dict:
         return {"cos_cut": dr.opaque(mi.Float, self.cos_cut), "ka": dr.opaque(mi.Float, self.ka)}
 
-    def gain(self, dr, mi, cos_theta, c):
-        """Intensity gain for a direction at angle θ from the boresight (``cos_theta``)."""
+    def amplitude(self, cos_theta, c):
+        """Pressure gain for a direction at angle θ from the boresight (``cos_theta``):
+        1/0 for the cone, 1 for isotropic, the signed 2·J1(ka sinθ)/(ka sinθ) in front of
+        a baffled piston (its square is :meth:`gain`)."""
         if self.kind == "isotropic":
             return dr.full(mi.Float, 1.0, dr.width(cos_theta))
         if self.kind == "cone":
             return dr.select(cos_theta >= c["cos_cut"], 1.0, 0.0)
-        # Baffled circular piston: |2 J1(ka sinθ)/(ka sinθ)|² in front, nothing behind.
         sin_theta = dr.safe_sqrt(1.0 - cos_theta * cos_theta)
-        d = 2.0 * _bessel_j1_over_x(dr, mi, c["ka"] * sin_theta)
-        return dr.select(cos_theta > 0.0, d * d, 0.0)
+        return dr.select(cos_theta > 0.0, 2.0 * _bessel_j1_over_x(c["ka"] * sin_theta), 0.0)
 
-    def sample(self, dr, mi, u_pick, u2, c):
-        """Local direction (z = boresight) and the weight gain/pdf for uniform numbers."""
+    def gain(self, cos_theta, c):
+        """Intensity gain for a direction at angle θ from the boresight (``cos_theta``)."""
+        if self.kind == "piston":   # |2 J1(ka sinθ)/(ka sinθ)|² in front, nothing behind
+            a = self.amplitude(cos_theta, c)
+            return a * a
+        return self.amplitude(cos_theta, c)
+
+    def sample(self, u_pick, u2, c):
+        """Local direction (z = boresight) and 1/pdf (sr) for uniform numbers."""
         if self.kind == "isotropic":
             return mi.warp.square_to_uniform_sphere(u2), dr.full(mi.Float, 4.0 * math.pi,
                                                                   dr.width(u_pick))
@@ -142,7 +155,7 @@ class _Beam:
         d = dr.select(in_lobe, d_cone, d_hemi)
         pdf = (1.0 - q) / (2.0 * math.pi) + dr.select(d.z >= c["cos_cut"],
                                                        q / cone_solid_angle, 0.0)
-        return d, self.gain(dr, mi, d.z, c) / pdf
+        return d, 1.0 / pdf
 
 
 class SonarTransientIntegrator(mi.SamplingIntegrator):
@@ -153,7 +166,11 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
     (full beamwidth in degrees, default 30; for 'piston' the half-power width),
     ``shading_normals`` (bool, default True: cosines use interpolated mesh normals),
     ``accumulator`` ('float64' | 'float32', default 'float64': the histogram buffer type),
-    ``mode`` ('intensity'; reserved for a later coherent mode).
+    ``bounce1`` ('surface' | 'cone', default 'surface': the bounce-1 estimator),
+    ``amplitude`` ('intensity' | 'pressure' | 'coherent', default 'intensity'),
+    ``surface_spacing`` (m, default 1.5e-3: size of the surface quadrature's strata),
+    ``speckle_spacing`` (m, default 3e-3: scatterer cell of 'coherent'),
+    ``speckle_seed`` (int, default 0: the phases of 'coherent').
     """
 
     def __init__(self, props):
@@ -172,13 +189,40 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError("sonar_transient: accumulator must be 'float64' or 'float32', "
                              f"got {accumulator!r}")
         self.float64 = accumulator == "float64"
-        self.mode = str(props.get("mode", "intensity"))
-        if self.mode != "intensity":
-            raise ValueError(f"sonar_transient: mode must be 'intensity', got {self.mode!r}")
+        # 'mode' is the former name of 'amplitude'
+        self.amplitude = str(props.get("amplitude", props.get("mode", "intensity")))
+        if self.amplitude not in AMPLITUDES:
+            raise ValueError(f"sonar_transient: amplitude must be one of {AMPLITUDES}, "
+                             f"got {self.amplitude!r}")
+        self.bounce1 = str(props.get("bounce1", "surface"))
+        if self.bounce1 not in BOUNCE1_ESTIMATORS:
+            raise ValueError(f"sonar_transient: bounce1 must be one of {BOUNCE1_ESTIMATORS}, "
+                             f"got {self.bounce1!r}")
+        self.surface_spacing = float(props.get("surface_spacing", DEFAULT_SURFACE_SPACING))
+        self.speckle_spacing = float(props.get("speckle_spacing", DEFAULT_SPECKLE_SPACING))
+        for name, value in (("surface_spacing", self.surface_spacing),
+                            ("speckle_spacing", self.speckle_spacing)):
+            if not (math.isfinite(value) and 1e-5 <= value <= 10.0):
+                raise ValueError(f"sonar_transient: {name} must be in [1e-5, 10] m, got {value}")
+        self.path_samples = int(props.get("path_samples", DEFAULT_PATH_SAMPLES))
+        if not 1 <= self.path_samples <= 64:
+            raise ValueError(f"sonar_transient: path_samples must be in 1..64, "
+                             f"got {self.path_samples}")
+        self.speckle_seed = int(props.get("speckle_seed", 0))
+        if not 0 <= self.speckle_seed < 2**32:
+            raise ValueError(f"sonar_transient: speckle_seed must be in [0, 2^32), "
+                             f"got {self.speckle_seed}")
+        self._strata_cache: dict = {}
+
+    @property
+    def complex_output(self) -> bool:
+        """True if histograms are complex64 ('coherent'), else float32."""
+        return self.amplitude == "coherent"
 
     def to_string(self):
         return (f"SonarTransientIntegrator[max_bounces={self.max_bounces}, "
-                f"tx_beam={self.tx_beam.describe()}, rx_beam={self.rx_beam.describe()}]")
+                f"tx_beam={self.tx_beam.describe()}, rx_beam={self.rx_beam.describe()}, "
+                f"bounce1={self.bounce1}, amplitude={self.amplitude}]")
 
     def render(self, scene, sensor=None, seed=0, spp=0, develop=True, evaluate=True):
         raise RuntimeError("sonar_transient renders histograms: call "
@@ -188,20 +232,64 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         raise RuntimeError("sonar_transient has no image mode; use render_transients()")
 
     # ------------------------------------------------------------------ public API
+    def surface_strata(self, scene, roi=None):
+        """The surface quadrature of ``scene``: (strata, Dr.Jit arrays), built once per scene
+        and settings; ``roi`` [2, 3] (m) limits large triangles to the strata near that box
+        (a cached set whose box contains ``roi`` is reused)."""
+        from . import _surface_samples
+        speckle = self.speckle_spacing if self.amplitude == "coherent" else None
+        key = (id(scene), self.surface_spacing, speckle, self.speckle_seed)
+        entry = self._strata_cache.get(key)
+        if entry is not None and roi is not None and entry[0].roi is not None:
+            cached = entry[0].roi
+            if np.any(roi[0] < cached[0]) or np.any(roi[1] > cached[1]):
+                entry = None
+                roi = np.stack([np.minimum(roi[0], cached[0]), np.maximum(roi[1], cached[1])])
+        if entry is None or (roi is None and entry[0].roi is not None):
+            strata = _surface_samples.build(mi, scene, self.surface_spacing, speckle,
+                                            self.speckle_seed, roi)
+            # one entry; holding the scene keeps its id from being reused meanwhile
+            entry = (strata, _StrataArrays(strata), scene)
+            self._strata_cache = {key: entry}
+        return entry[0], entry[1]
+
+    def _region(self, tx, rx, tx_dir, rx_dir, path_end: float) -> np.ndarray:
+        """A box [2, 3] (m) holding every point that can reach the window of some pose:
+        path length ≤ path_end (an ellipsoid's box) and inside both cone beams."""
+        half = path_end / 2.0
+        mid = (tx + rx) / 2.0
+        lo, hi = mid - half, mid + half
+        for beam, apex, axis in ((self.tx_beam, tx, tx_dir), (self.rx_beam, rx, rx_dir)):
+            if beam.kind != "cone" or beam.beamwidth_deg >= 120.0:
+                continue
+            radius = path_end * math.tan(math.radians(beam.beamwidth_deg) / 2.0)
+            end = apex + path_end * axis
+            extent = radius * np.sqrt(np.maximum(0.0, 1.0 - axis * axis))
+            lo = np.maximum(lo, np.minimum(apex, end - extent))
+            hi = np.minimum(hi, np.maximum(apex, end + extent))
+        pad = 2.0 * max(self.surface_spacing, self.speckle_spacing)
+        return np.stack([lo.min(axis=0) - pad, hi.max(axis=0) + pad])
+
     def render_transients(self, scene, tx, rx, tx_dir, rx_dir, path_start: float,
                           bin_width: float, n_bins: int, paths_per_pose: int,
-                          seed: int = 0, *, pose_offset: int = 0,
+                          seed: int = 0, *, pose_offset: int = 0, halves: bool = False,
                           reduce_mode=None, ray_stats: dict | None = None) -> np.ndarray:
-        """Energy histograms for N poses, float32 [N, max_bounces, n_bins].
+        """Histograms for N poses: [N, max_bounces, n_bins], or [2, N, max_bounces, n_bins]
+        with ``halves=True`` (two independent half-estimates whose mean is the full one).
 
-        ``tx``, ``rx``: positions [N, 3] (m); ``tx_dir``, ``rx_dir``: boresights [N, 3]
-        (normalised here). ``path_start``, ``bin_width``: round-trip path length (m) of
-        the window start and of one bin. ``seed`` (0 ≤ seed < 2³²) and ``pose_offset``
-        (global index of pose 0, which makes results independent of chunking) select
-        the random numbers. N · paths_per_pose and N · bounces · n_bins must be < 2³².
-        ``ray_stats``: if a dict, the numbers of intersection and shadow rays traced are
-        added to its keys 'intersect' and 'shadow' (slower: splits the kernel; for
-        benchmarks).
+        float32 for amplitude 'intensity' (energy) and 'pressure' (real pressure), complex64
+        for 'coherent' (the phase-carrying pressure; the waveform is the real part of the
+        histogram convolved with the analytic pulse). ``tx``, ``rx``: positions [N, 3] (m);
+        ``tx_dir``, ``rx_dir``: boresights [N, 3] (normalised here). ``path_start``,
+        ``bin_width``: round-trip path length (m) of the window start and of one bin.
+        ``paths_per_pose``: TX-cone paths (bounces ≥ 2, and bounce 1 with bounce1='cone');
+        paths of even index form half 0, odd ones half 1 (``halves`` needs ≥ 2 paths when
+        paths are traced). ``seed`` (0 ≤ seed < 2³²) and ``pose_offset`` (global index of
+        pose 0, which makes results independent of chunking) select the random numbers.
+        N · paths_per_pose, N · 2 · surface strata and 2 · N · bounces · n_bins must be < 2³².
+        ``ray_stats``: if a dict, the numbers of intersection and shadow rays traced by
+        the path tracer are added to its keys 'intersect' and 'shadow' (slower: splits the
+        kernel; for benchmarks).
         """
         tx, rx, tx_dir, rx_dir = (_as_vectors(a, name) for a, name in (
             (tx, "tx"), (rx, "rx"), (tx_dir, "tx_dir"), (rx_dir, "rx_dir")))
@@ -216,58 +304,206 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError("sonar_transient: path_start must be finite and bin_width > 0")
         if not (0 <= seed < 2**32 and 0 <= pose_offset and pose_offset + n <= 2**32):
             raise ValueError("sonar_transient: seed must be in [0, 2^32), pose indices < 2^32")
-        n_hist = n * self.max_bounces * n_bins
+        traces = self.bounce1 == "cone" or self.max_bounces > 1
+        if halves and traces and paths_per_pose < 2:
+            raise ValueError("sonar_transient: halves=True needs paths_per_pose >= 2")
+        n_slots = 2 if halves else 1
+        n_hist = n_slots * n * self.max_bounces * n_bins
         if n * paths_per_pose >= 2**32 or n_hist >= 2**32:
             raise ValueError("sonar_transient: too many lanes or bins for one launch "
                              "(< 2^32 each); render fewer poses at a time")
+        shape = ((2,) if halves else ()) + (n, self.max_bounces, n_bins)
+        dtype = np.complex64 if self.complex_output else np.float32
         if n == 0:
-            return np.zeros((0, self.max_bounces, n_bins), np.float32)
-        hist = dr.zeros(mi.Float64 if self.float64 else mi.Float, n_hist)
-        self._trace(scene, hist, tx, rx, tx_dir, rx_dir, float(path_start),
-                    float(bin_width), n_bins, paths_per_pose, seed, pose_offset,
-                    dr.ReduceMode.Local if reduce_mode is None else reduce_mode, ray_stats)
-        if self.float64:
-            hist = mi.Float(hist)        # round in Dr.Jit: much faster than NumPy's astype
-        dr.eval(hist)
-        return hist.numpy().reshape(n, self.max_bounces, n_bins)
+            return np.zeros(shape, dtype)
+        buf_type = mi.Float64 if self.float64 else mi.Float
+        parts = 2 if self.complex_output else 1
+        hists = [dr.zeros(buf_type, n_hist) for _ in range(parts)]
+        ctx = self._context(tx, rx, tx_dir, rx_dir, float(path_start), float(bin_width),
+                            n_bins, seed, pose_offset, halves,
+                            dr.ReduceMode.Local if reduce_mode is None else reduce_mode)
+        if self.bounce1 == "surface":
+            roi = self._region(tx, rx, tx_dir, rx_dir,
+                               float(path_start) + (n_bins + 1) * float(bin_width))
+            self._surface(scene, hists, ctx, roi)
+        if traces:
+            self._trace(scene, hists, ctx, paths_per_pose, ray_stats)
+        out = []
+        for h in hists:
+            if self.float64:
+                h = mi.Float(h)        # round in Dr.Jit: much faster than NumPy's astype
+            dr.eval(h)
+            out.append(h.numpy())
+        if self.complex_output:
+            result = np.empty(n_hist, np.complex64)
+            result.real, result.imag = out
+        else:
+            result = out[0]
+        return result.reshape(shape)
 
-    # ------------------------------------------------------------------ kernel
-    def _trace(self, scene, hist, tx, rx, tx_dir, rx_dir, path_start, bin_width, n_bins,
-               paths_per_pose, seed, pose_offset, reduce_mode, ray_stats=None):
+    # ------------------------------------------------------------------ shared set-up
+    def _context(self, tx, rx, tx_dir, rx_dir, path_start, bin_width, n_bins, seed,
+                 pose_offset, halves, reduce_mode) -> dict:
+        n = tx.shape[0]
+
+        def vec(a):
+            if a.shape[0] == 1:   # Dr.Jit compiles 1-element sources differently per call
+                a = np.repeat(a, 2, axis=0)
+            return mi.Vector3f(*(mi.Float(a[:, i].astype(np.float32)) for i in range(3)))
+
+        stride = self.max_bounces * n_bins
+        return dict(
+            n_poses=n, halves=halves, reduce_mode=reduce_mode,
+            tx=vec(tx), rx=vec(rx), tx_dir=vec(tx_dir), rx_dir=vec(rx_dir),
+            seed=dr.opaque(mi.UInt32, seed), pose_offset=dr.opaque(mi.UInt32, pose_offset),
+            start=dr.opaque(mi.Float, path_start), inv_width=dr.opaque(mi.Float, 1.0 / bin_width),
+            end=dr.opaque(mi.Float, path_start + n_bins * bin_width),
+            margin=dr.opaque(mi.Float, bin_width),
+            n_bins=dr.opaque(mi.Int32, n_bins), pose_stride=dr.opaque(mi.UInt32, stride),
+            half_stride=dr.opaque(mi.UInt32, n * stride),
+            n_bins_u=dr.opaque(mi.UInt32, n_bins),
+            tx_c=self.tx_beam.opaque(), rx_c=self.rx_beam.opaque(),
+            speckle_key=dr.opaque(mi.UInt32, self.speckle_seed),
+            inv_speckle=dr.opaque(mi.Float, 1.0 / self.speckle_spacing))
+
+    # ------------------------------------------------------------------ bounce 1: surface
+    def _surface(self, scene, hists, ctx, roi):
+        """Bounce 1 by stratified area quadrature: one jittered point per stratum and half."""
+        strata, arrays = self.surface_strata(scene, roi)
+        if arrays.n_tri:
+            self._surface_lanes(scene, hists, ctx, arrays.n_tri, arrays.triangle_points,
+                                lambda k: dr.gather(mi.UInt32, arrays.tri["sid"], k))
+        for index, item in enumerate(arrays.parametric):
+            self._surface_lanes(scene, hists, ctx, len(item[0]),
+                                lambda k, u, it=item: _parametric_points(it, k, u),
+                                lambda k, i=index: k ^ mi.UInt32((0x7F4A7C15 * (i + 1)) & 0xFFFFFFFF))
+
+    def _surface_lanes(self, scene, hists, ctx, n_strata, points, stable_id):
+        """Launch the lanes (pose, half, stratum), in batches of < 2³¹ lanes."""
+        per_batch = max(1, (2**31) // (2 * n_strata))
+        for first in range(0, ctx["n_poses"], per_batch):
+            count = min(per_batch, ctx["n_poses"] - first)
+            self._surface_batch(scene, hists, ctx, n_strata, points, stable_id, first, count)
+
+    def _surface_batch(self, scene, hists, ctx, n_strata, points, stable_id, first, count):
         UInt32, Float = mi.UInt32, mi.Float
-        n_poses = tx.shape[0]
+        m = dr.opaque(UInt32, n_strata)
+        lane = dr.arange(UInt32, count * 2 * n_strata)
+        pair = lane // m                  # pose * 2 + half
+        k = lane - pair * m               # stratum
+        pose = (pair >> 1) + dr.opaque(UInt32, first)
+        half = pair & 1
+        key = mi.sample_tea_32(ctx["seed"], (pose + ctx["pose_offset"]) * 2 + half)[0]
+        sid = stable_id(k)
+        r1, r2 = mi.sample_tea_32(key, sid)
+        u = mi.Point2f(Float(r1 >> 8) * (1.0 / 16777216.0), Float(r2 >> 8) * (1.0 / 16777216.0))
+        p, n_geo, n_sh, rho, area, phase, corners = points(k, u)
+        if not self.shading_normals:
+            n_sh = n_geo
+        p_tx = mi.Point3f(dr.gather(mi.Vector3f, ctx["tx"], pose))
+        p_rx = mi.Point3f(dr.gather(mi.Vector3f, ctx["rx"], pose))
+        b_tx = dr.gather(mi.Vector3f, ctx["tx_dir"], pose)
+        b_rx = dr.gather(mi.Vector3f, ctx["rx_dir"], pose)
+        to_tx, to_rx = p_tx - p, p_rx - p
+        r_t, r_r = dr.norm(to_tx), dr.norm(to_rx)
+        w_t, w_r = to_tx / r_t, to_rx / r_r
+        length = r_t + r_r
+        # Two-sided surfaces: orient the normals towards the TX's side.
+        flip = dr.select(dr.dot(n_geo, w_t) < 0.0, -1.0, 1.0)
+        n_geo, n_sh = n_geo * flip, n_sh * flip
+        cos_i = dr.dot(n_geo, w_t)                      # geometric, as the TX-cone sampling
+        cos_o = dr.maximum(dr.dot(n_sh, w_r), 0.0)
+        active = (cos_i > 0.0) & (dr.dot(n_geo, w_r) > 0.0) & (cos_o > 0.0)
+        if corners is None:
+            lo_len = hi_len = length
+        else:   # path lengths at the facet's corners: a ≤ c ≤ b
+            ls = [dr.norm(p_tx - q) + dr.norm(p_rx - q) for q in corners]
+            lo_len = dr.minimum(dr.minimum(ls[0], ls[1]), ls[2])
+            hi_len = dr.maximum(dr.maximum(ls[0], ls[1]), ls[2])
+        active &= (hi_len > ctx["start"] - ctx["margin"]) & (lo_len < ctx["end"] + ctx["margin"])
+        ct, cr = -dr.dot(w_t, b_tx), -dr.dot(w_r, b_rx)
+        if self.amplitude == "intensity":
+            value = (self.tx_beam.gain(ct, ctx["tx_c"]) * self.rx_beam.gain(cr, ctx["rx_c"])
+                     * rho * dr.inv_pi * cos_i * cos_o / (r_t * r_t * r_r * r_r))
+        else:   # the seed's Eq. (1): b_T b_R σ / (2π r_T r_R), σ = sqrt(ρ cosθ_i cosθ_o)
+            value = (self.tx_beam.amplitude(ct, ctx["tx_c"]) * self.rx_beam.amplitude(cr, ctx["rx_c"])
+                     * dr.sqrt(rho * cos_i * cos_o) * (0.5 * dr.inv_pi) / (r_t * r_r))
+        value = value * area * (1.0 if ctx["halves"] else 0.5)
+        active &= value != 0.0
+        # Visibility: shadow rays from the point (offset along the oriented normal).
+        scale = dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
+        origin = p + n_geo * ((1.0 + scale) * mi.math.RayEpsilon)
+        for target in (p_tx, p_rx):
+            ray = mi.Ray3f(origin, target - origin)
+            ray.maxt = Float(1.0 - mi.math.ShadowEpsilon)
+            active &= ~scene.ray_test(ray, active)
+        slot = half if ctx["halves"] else UInt32(0)
+        values = [value]
+        if self.complex_output:
+            values = [value * dr.cos(phase), value * dr.sin(phase)]
+        if corners is None:           # analytic shapes: a point splat
+            for h, v in zip(hists, values):
+                self._splat(h, v, length, pose, slot, 0, ctx, active)
+            return
+        # Flat facets: path length is linear over the facet to within s²/(2r); the
+        # facet's area maps to the triangular density of L between its corners' lengths
+        # a ≤ c ≤ b. Spread the value over m stratified quantiles of that density (one
+        # random shift per lane), so the facet's echo is smooth in time, not a spike.
+        a, b = lo_len, hi_len
+        c = ls[0] + ls[1] + ls[2] - a - b
+        span = dr.maximum(b - a, 1e-12)
+        f_c = (c - a) / span
+        m = self.path_samples
+        shift = Float(mi.sample_tea_32(key, sid ^ 0x80000000)[0] >> 8) * (1.0 / 16777216.0)
+        values = [v * (1.0 / m) for v in values]
+        for i in range(m):
+            q = (i + shift) * (1.0 / m)
+            lo = a + dr.safe_sqrt(q * span * (c - a))
+            hi = b - dr.safe_sqrt((1.0 - q) * span * (b - c))
+            li = dr.select(q < f_c, lo, hi)
+            for h, v in zip(hists, values):
+                self._splat(h, v, li, pose, slot, 0, ctx, active)
+
+    # ------------------------------------------------------------------ TX-cone paths
+    def _trace(self, scene, hists, ctx, paths_per_pose, ray_stats=None):
+        UInt32, Float = mi.UInt32, mi.Float
+        n_poses = ctx["n_poses"]
         n_paths = UInt32(dr.opaque(UInt32, paths_per_pose))
         lane = dr.arange(UInt32, n_poses * paths_per_pose)
         pose = lane // n_paths           # lanes are pose-major: coherent rays per pose
         path = lane - pose * n_paths
-        pose_global = pose + dr.opaque(UInt32, pose_offset)
-        stream_key = mi.sample_tea_32(dr.opaque(UInt32, seed), pose_global)[0]
+        pose_global = pose + ctx["pose_offset"]
+        stream_key = mi.sample_tea_32(ctx["seed"], pose_global)[0]
         rng = mi.PCG32(1, mi.sample_tea_64(stream_key, path),
                        mi.sample_tea_64(path, stream_key))
+        # Half h = paths of parity h; weights make the full estimate the mean of the halves.
+        half = path & 1
+        n0, n1 = (paths_per_pose + 1) // 2, paths_per_pose // 2
+        if ctx["halves"]:
+            w0, w1 = 1.0 / n0, 1.0 / n1
+        elif paths_per_pose == 1:
+            w0 = w1 = 1.0
+        else:
+            w0, w1 = 0.5 / n0, 0.5 / n1
+        weight = dr.select(half == 0, dr.opaque(Float, w0), dr.opaque(Float, w1))
+        slot = half if ctx["halves"] else UInt32(0)
 
-        def gather3(a):
-            if a.shape[0] == 1:   # Dr.Jit compiles 1-element sources differently per call
-                a = np.repeat(a, 2, axis=0)
-            src = mi.Vector3f(*(Float(a[:, i].astype(np.float32)) for i in range(3)))
-            return dr.gather(mi.Vector3f, src, pose)
-
-        p_tx, p_rx = mi.Point3f(gather3(tx)), mi.Point3f(gather3(rx))
-        b_tx, b_rx = gather3(tx_dir), gather3(rx_dir)
-        tx_c = self.tx_beam.opaque(dr, mi)
-        rx_c = self.rx_beam.opaque(dr, mi)
-        bins = dict(start=dr.opaque(Float, path_start),
-                    inv_width=dr.opaque(Float, 1.0 / bin_width),
-                    n_bins=dr.opaque(mi.Int32, n_bins),
-                    pose_stride=dr.opaque(UInt32, self.max_bounces * n_bins),
-                    n_bins_u=dr.opaque(UInt32, n_bins))
+        p_tx = mi.Point3f(dr.gather(mi.Vector3f, ctx["tx"], pose))
+        p_rx = mi.Point3f(dr.gather(mi.Vector3f, ctx["rx"], pose))
+        b_tx = dr.gather(mi.Vector3f, ctx["tx_dir"], pose)
+        b_rx = dr.gather(mi.Vector3f, ctx["rx_dir"], pose)
+        intensity = self.amplitude == "intensity"
 
         # Bounce 0: leave the TX in a direction drawn from its beam.
         u_pick = rng.next_float32()
         u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-        d_local, throughput = self.tx_beam.sample(dr, mi, u_pick, u2, tx_c)
+        d_local, inv_pdf = self.tx_beam.sample(u_pick, u2, ctx["tx_c"])
+        beam = (self.tx_beam.gain if intensity else self.tx_beam.amplitude)(d_local.z, ctx["tx_c"])
         ray = mi.Ray3f(p_tx, mi.Frame3f(b_tx).to_world(d_local))
-        throughput = throughput * dr.opaque(Float, 1.0 / paths_per_pose)   # MC average
+        # intensity: b_T/pdf; pressure: a_T/pdf, completed by r/cosθ_i at the vertex
+        throughput = beam * inv_pdf * weight
         length = Float(0.0)
+        phase = Float(0.0)
         prev_p = p_tx
         active = dr.full(mi.Bool, True, n_poses * paths_per_pose)
 
@@ -280,34 +516,65 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             active &= si.is_valid()
             # Length between the vertices themselves (the ray starts a little past
             # the previous vertex, see below).
-            length += dr.norm(si.p - prev_p)
+            seg = dr.norm(si.p - prev_p)
+            length += seg
             prev_p = si.p
             # Two-sided surfaces: orient the normals towards the side the path arrives from.
             flip = dr.select(dr.dot(si.n, ray.d) > 0.0, -1.0, 1.0)
             n_geo = si.n * flip
             n_shade = (si.sh_frame.n if self.shading_normals else si.n) * flip
             albedo = si.bsdf().eval_diffuse_reflectance(si, active)[0]
+            if not intensity:
+                cos_in = -dr.dot(n_geo, ray.d)
+                active &= cos_in > 1e-6
+                throughput = throughput * seg / cos_in          # dA = r²/cosθ_i dω (÷ r: Eq. (1))
+                if self.amplitude == "coherent":
+                    phase += self._voxel_phase(si.p, bounce, ctx)
 
-            # Next-event connection to the point receiver.
-            to_rx = p_rx - si.p
-            dist2 = dr.squared_norm(to_rx)
-            dist = dr.sqrt(dist2)
-            w_rx = to_rx / dist
-            cos_out = dr.dot(n_shade, w_rx)
-            gain_rx = self.rx_beam.gain(dr, mi, -dr.dot(w_rx, b_rx), rx_c)
-            value = throughput * albedo * dr.inv_pi * dr.maximum(cos_out, 0.0) * gain_rx / dist2
-            connect = active & (dr.dot(n_geo, w_rx) > 0.0) & (value > 0.0)
-            if ray_stats is not None:
-                ray_stats["shadow"] = ray_stats.get("shadow", 0) + int(dr.count(connect)[0])
-            connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
-            self._splat(hist, value, length + dist, pose, bounce, bins, connect, reduce_mode)
+            if bounce > 0 or self.bounce1 == "cone":
+                # Next-event connection to the point receiver.
+                to_rx = p_rx - si.p
+                dist2 = dr.squared_norm(to_rx)
+                dist = dr.sqrt(dist2)
+                w_rx = to_rx / dist
+                cos_out = dr.maximum(dr.dot(n_shade, w_rx), 0.0)
+                c_rx = -dr.dot(w_rx, b_rx)
+                if intensity:
+                    value = (throughput * albedo * dr.inv_pi * cos_out
+                             * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
+                else:
+                    value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
+                             * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
+                connect = active & (dr.dot(n_geo, w_rx) > 0.0) & (value != 0.0)
+                if ray_stats is not None:
+                    ray_stats["shadow"] = ray_stats.get("shadow", 0) + int(dr.count(connect)[0])
+                connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
+                values = [value]
+                if self.complex_output:
+                    values = [value * dr.cos(phase), value * dr.sin(phase)]
+                for h, v in zip(hists, values):
+                    self._splat(h, v, length + dist, pose, slot, bounce, ctx, connect)
 
             if bounce + 1 < self.max_bounces:
                 u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-                d_new = mi.Frame3f(n_shade).to_world(mi.warp.square_to_cosine_hemisphere(u2))
+                d_local = mi.warp.square_to_cosine_hemisphere(u2)
+                d_new = mi.Frame3f(n_shade).to_world(d_local)
                 active &= dr.dot(d_new, n_geo) > 0.0   # shading normal may point under the surface
-                throughput *= albedo                   # (ρ/π · cos) / (cos/π)
+                if intensity:
+                    throughput *= albedo                   # (ρ/π · cos) / (cos/π)
+                else:   # σ/(2π) · π/cosθ_o with σ = sqrt(ρ cosθ_i cosθ_o)
+                    cos_new = dr.maximum(d_local.z, 1e-12)
+                    throughput *= dr.sqrt(albedo * cos_in * cos_new) * 0.5 / cos_new
                 ray = self._continue_ray(si.p, d_new)
+
+    @staticmethod
+    def _voxel_phase(p, bounce, ctx):
+        """Phase (rad) of the world-space speckle cell (cube of side speckle_spacing) at p,
+        for the vertices of paths with ≥ 2 bounces (a stream independent of bounce 1's)."""
+        q = mi.Vector3i(dr.floor(p * ctx["inv_speckle"]))
+        h = mi.sample_tea_32(mi.UInt32(q.x), mi.UInt32(q.y) ^ (ctx["speckle_key"] * 2 + 1))[0]
+        h = mi.sample_tea_32(h, mi.UInt32(q.z) ^ 0x9E3779B9)[0]
+        return mi.Float(h >> 8) * (2.0 * math.pi / 16777216.0)
 
     @staticmethod
     def _continue_ray(p, d):
@@ -325,18 +592,68 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         return mi.Ray3f(p + eps * d, d)
 
     @staticmethod
-    def _splat(hist, value, length, pose, bounce, bins, active, reduce_mode):
-        """Tent-splat ``value`` at ``length`` into the bins of (pose, bounce)."""
-        u = (length - bins["start"]) * bins["inv_width"] - 0.5   # in bin-centre units
-        u = dr.clip(u, -2.0, mi.Float(bins["n_bins"]) + 1.0)   # keep the int cast defined
+    def _splat(hist, value, length, pose, slot, bounce, ctx, active):
+        """Tent-splat ``value`` at ``length`` into the bins of (slot, pose, bounce)."""
+        u = (length - ctx["start"]) * ctx["inv_width"] - 0.5   # in bin-centre units
+        u = dr.clip(u, -2.0, mi.Float(ctx["n_bins"]) + 1.0)   # keep the int cast defined
         j0f = dr.floor(u)
         frac = u - j0f
         j0 = mi.Int32(j0f)
-        base = pose * bins["pose_stride"] + bounce * bins["n_bins_u"]
+        base = slot * ctx["half_stride"] + pose * ctx["pose_stride"] + bounce * ctx["n_bins_u"]
         for j, w in ((j0, 1.0 - frac), (j0 + 1, frac)):
-            ok = active & (j >= 0) & (j < bins["n_bins"])
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, type(hist)(value * w), base + mi.UInt32(j), ok,
-                              mode=reduce_mode)
+            ok = active & (j >= 0) & (j < ctx["n_bins"])
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, type(hist)(value * w), base + mi.UInt32(j),
+                              ok, mode=ctx["reduce_mode"])
+
+
+class _StrataArrays:
+    """The strata of :mod:`._surface_samples` as Dr.Jit arrays (gathered per lane)."""
+
+    def __init__(self, strata):
+        t = strata.triangles
+        self.n_tri = 0 if t is None else len(t)
+        if self.n_tri:
+            v = lambda a: mi.Vector3f(*(mi.Float(np.ascontiguousarray(a[:, i])) for i in range(3)))
+            self.tri = {key: v(getattr(t, key)) for key in
+                        ("p0", "e1", "e2", "n_geo", "n0", "dn1", "dn2")}
+            self.tri["rho"] = mi.Float(t.rho)
+            self.tri["area"] = mi.Float(t.area)
+            self.tri["sid"] = mi.UInt32(t.sid)
+            self.tri["phase"] = mi.Float(t.phase if t.phase is not None
+                                         else np.zeros(1, np.float32))
+        self.parametric = []
+        for ps in strata.parametric:
+            phase = ps.phase if ps.phase is not None else np.zeros(1, np.float32)
+            self.parametric.append((range(len(ps)), ps.shape, dr.opaque(mi.UInt32, ps.n_v),
+                                    dr.opaque(mi.Float, 1.0 / ps.n_u),
+                                    dr.opaque(mi.Float, 1.0 / ps.n_v),
+                                    dr.opaque(mi.Float, 1.0 / (ps.n_u * ps.n_v)),
+                                    dr.opaque(mi.Float, ps.rho), mi.Float(phase),
+                                    ps.phase is not None))
+
+    def triangle_points(self, k, u):
+        t = self.tri
+        g = lambda key: dr.gather(mi.Vector3f, t[key], k)
+        b = mi.warp.square_to_uniform_triangle(u)
+        p = mi.Point3f(g("p0") + b.x * g("e1") + b.y * g("e2"))
+        n_sh = dr.normalize(g("n0") + b.x * g("dn1") + b.y * g("dn2"))
+        phase = dr.gather(mi.Float, t["phase"], k) if len(t["phase"]) > 1 else mi.Float(0.0)
+        p0 = mi.Point3f(g("p0"))
+        corners = (p0, p0 + g("e1"), p0 + g("e2"))
+        return (p, g("n_geo"), n_sh, dr.gather(mi.Float, t["rho"], k),
+                dr.gather(mi.Float, t["area"], k), phase, corners)
+
+
+def _parametric_points(item, k, u):
+    """A point of stratum k of an analytic shape: ``shape.sample_position`` of the cell."""
+    _, shape, n_v, inv_nu, inv_nv, inv_cells, rho, phases, has_phase = item
+    iu = k // n_v
+    iv = k - iu * n_v
+    uv = mi.Point2f((mi.Float(iu) + u.x) * inv_nu, (mi.Float(iv) + u.y) * inv_nv)
+    ps = shape.sample_position(0.0, uv)
+    area = inv_cells / ps.pdf                 # cell measure / area density of the map
+    phase = dr.gather(mi.Float, phases, k) if has_phase else mi.Float(0.0)
+    return ps.p, ps.n, ps.n, mi.Float(rho), area, phase, None
 
 
 mi.register_integrator(PLUGIN_NAME, lambda props: SonarTransientIntegrator(props))

@@ -2,7 +2,9 @@
 
 :func:`render` returns a :class:`sonarsim.dataset.Transients` (float32 [N, B, T] energy
 histograms over round-trip path length, one per bounce); :func:`iter_render` yields the
-same histograms chunk by chunk for streaming. Poses are split into chunks whose histogram
+same histograms chunk by chunk for streaming, optionally as two independent
+half-estimates (``halves=True``: [2, n, B, T], their mean is the estimate) and, for the
+'coherent' amplitude model, complex64 (docs/transient_rendering.md). Poses are split into chunks whose histogram
 buffers fit a memory budget and whose lane count (poses × paths) stays below 2³²; each
 chunk is one Dr.Jit kernel launch, and every chunk reuses the same compiled kernel.
 
@@ -38,6 +40,8 @@ BEAM_KEYS = tuple(DEFAULT_BEAMS) + ("shading_normals",)
 DEFAULT_SOUND_SPEED = 344.973      # m/s, the reference's simulated system file (REFERENCE_SPEC §1.3)
 DEFAULT_MEMORY_BUDGET = 768 * 2**20  # bytes for one chunk's histogram buffers
 _LANE_LIMIT = 2**32 - 1
+AMPLITUDES = ("intensity", "pressure", "coherent")       # the integrator's 'amplitude'
+BOUNCE1_ESTIMATORS = ("surface", "cone")                 # the integrator's 'bounce1'
 # Bytes per histogram bin while a chunk is rendered: float64 Dr.Jit buffer, its float32
 # rounding and NumPy copy, plus headroom for Dr.Jit's allocator cache.
 _BYTES_PER_BIN = 20
@@ -108,20 +112,46 @@ def reference_parity_poses(poses: Poses, target=REFERENCE_RX_TARGET) -> Poses:
 
 
 def choose_chunk_size(paths_per_pose: int, bounces: int, n_bins: int,
-                      memory_budget: int = DEFAULT_MEMORY_BUDGET) -> int:
-    """Poses per chunk: histogram buffers within ``memory_budget`` bytes, lanes < 2³²."""
-    per_pose = _BYTES_PER_BIN * bounces * n_bins
+                      memory_budget: int = DEFAULT_MEMORY_BUDGET, *, buffers: int = 1) -> int:
+    """Poses per chunk: histogram buffers within ``memory_budget`` bytes, lanes < 2³².
+
+    ``buffers``: histogram buffers per pose (2 for halves, 2 for complex, 4 for both).
+    """
+    per_pose = _BYTES_PER_BIN * bounces * n_bins * int(buffers)
     by_memory = max(1, memory_budget // per_pose)
     by_lanes = _LANE_LIMIT // paths_per_pose
-    by_bins = _LANE_LIMIT // (bounces * n_bins)
+    by_bins = _LANE_LIMIT // (bounces * n_bins * int(buffers))
     return int(max(1, min(by_memory, by_lanes, by_bins)))
 
 
-def make_integrator(bounces: int = 3, beams: Mapping | None = None):
-    """A ``sonar_transient`` integrator for ``bounces`` bounces and the given beam settings."""
+def estimator_props(bounce1: str | None = None, amplitude: str = "intensity",
+                    surface_spacing: float | None = None, speckle_seed: int = 0) -> dict:
+    """Integrator properties of the estimator settings (None: the integrator's default)."""
+    if amplitude not in AMPLITUDES:
+        raise InputError(f"amplitude must be one of {', '.join(AMPLITUDES)}, got {amplitude!r}")
+    if bounce1 is not None and bounce1 not in BOUNCE1_ESTIMATORS:
+        raise InputError(f"bounce1 must be one of {', '.join(BOUNCE1_ESTIMATORS)}, got {bounce1!r}")
+    props: dict = {"amplitude": amplitude}
+    if bounce1 is not None:
+        props["bounce1"] = bounce1
+    if surface_spacing is not None:
+        props["surface_spacing"] = float(surface_spacing)
+    if isinstance(speckle_seed, bool) or int(speckle_seed) != speckle_seed \
+            or not 0 <= speckle_seed < 2**32:
+        raise InputError(f"speckle_seed must be an integer in [0, 2^32), got {speckle_seed}")
+    props["speckle_seed"] = int(speckle_seed)
+    return props
+
+
+def make_integrator(bounces: int = 3, beams: Mapping | None = None, *,
+                    bounce1: str | None = None, amplitude: str = "intensity",
+                    surface_spacing: float | None = None, speckle_seed: int = 0):
+    """A ``sonar_transient`` integrator for ``bounces`` bounces, the given beam settings and
+    estimator settings (:func:`estimator_props`; docs/transient_rendering.md)."""
     from . import runtime
     mi = runtime.mitsuba()
-    props = {"type": "sonar_transient", "max_bounces": int(bounces), **_beam_settings(beams)}
+    props = {"type": "sonar_transient", "max_bounces": int(bounces), **_beam_settings(beams),
+             **estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)}
     try:
         return mi.load_dict(props)
     except (RuntimeError, ValueError) as exc:
@@ -133,9 +163,13 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
                 path_range=None, seed: int = 0, chunk_size: int | None = None,
                 beams: Mapping | None = None, box: SceneBox | None = None,
                 memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = False,
-                window: PathWindow | None = None, start: int = 0, stop: int | None = None
-                ) -> Iterator[tuple[slice, np.ndarray]]:
-    """Yield ``(pose_slice, hist)`` per chunk, ``hist`` float32 [n, bounces, T] for ``poses[pose_slice]``.
+                window: PathWindow | None = None, start: int = 0, stop: int | None = None,
+                bounce1: str | None = None, amplitude: str = "intensity",
+                surface_spacing: float | None = None, speckle_seed: int = 0,
+                halves: bool = False) -> Iterator[tuple[slice, np.ndarray]]:
+    """Yield ``(pose_slice, hist)`` per chunk, ``hist`` [n, bounces, T] for ``poses[pose_slice]``
+    (float32; complex64 for amplitude 'coherent'), or [2, n, bounces, T] with ``halves``:
+    two independent half-estimates whose mean is the estimate.
 
     Arguments as in :func:`render`; ``window`` (from :func:`path_window`) overrides the
     window arguments. ``start``, ``stop``: render only poses start..stop−1 (default all);
@@ -144,11 +178,14 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
     default window is still computed over all of ``poses``.
     """
     paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
+    props = estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)
+    buffers = (2 if halves else 1) * (2 if amplitude == "coherent" else 1)
     first, end = _check_range(start, stop, len(poses))
     if window is None:
         window = path_window(scene, poses, fs=fs, oversample=oversample,
                              sound_speed=sound_speed, path_range=path_range, box=box)
-    limit = choose_chunk_size(paths_per_pose, bounces, window.n_bins, memory_budget)
+    limit = choose_chunk_size(paths_per_pose, bounces, window.n_bins, memory_budget,
+                              buffers=buffers)
     n = end - first
     if n == 0:
         return
@@ -156,11 +193,16 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
         chunk_size = math.ceil(n / math.ceil(n / limit))
     elif int(chunk_size) != chunk_size or chunk_size < 1:
         raise InputError(f"chunk_size must be a positive integer, got {chunk_size}")
-    elif chunk_size * paths_per_pose > _LANE_LIMIT or chunk_size * bounces * window.n_bins > _LANE_LIMIT:
+    elif (chunk_size * paths_per_pose > _LANE_LIMIT
+          or chunk_size * bounces * window.n_bins * buffers > _LANE_LIMIT):
+        most = choose_chunk_size(paths_per_pose, bounces, window.n_bins, 2**62, buffers=buffers)
         raise InputError(f"chunk_size {chunk_size} exceeds 2^32 lanes or bins per launch; "
-                         f"use at most {choose_chunk_size(paths_per_pose, bounces, window.n_bins, 2**62)}")
+                         f"use at most {most}")
     chunk_size = int(chunk_size)
-    integrator = make_integrator(bounces, beams)
+    if halves and paths_per_pose < 2 and (bounces > 1 or props.get("bounce1") == "cone"):
+        raise InputError("two half-estimates need paths_per_pose >= 2")
+    integrator = make_integrator(bounces, beams, bounce1=bounce1, amplitude=amplitude,
+                                 surface_spacing=surface_spacing, speckle_seed=speckle_seed)
     bar = progress_bar(n, progress, unit="pose", desc="render")
     try:
         for a in range(first, end, chunk_size):
@@ -168,7 +210,7 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
             hist = integrator.render_transients(
                 scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl], poses.rx_boresight[sl],
                 window.path_start, window.bin_width, window.n_bins, paths_per_pose, seed,
-                pose_offset=a)
+                pose_offset=a, halves=halves)
             bar.update(sl.stop - sl.start)
             yield sl, hist
     finally:
@@ -179,7 +221,9 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
            fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
            path_range=None, seed: int = 0, chunk_size: int | None = None,
            beams: Mapping | None = None, box: SceneBox | None = None,
-           memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True) -> Transients:
+           memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True,
+           bounce1: str | None = None, amplitude: str = "intensity",
+           surface_spacing: float | None = None, speckle_seed: int = 0) -> Transients:
     """Render energy transients [N, bounces, T] for every pose of ``poses``.
 
     scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
@@ -191,8 +235,17 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
     kernel launch (default from ``memory_budget`` bytes). beams: overrides of
     :data:`DEFAULT_BEAMS` ('cone' | 'isotropic' | 'piston'; full beamwidths in degrees).
     Values are the energy received from a unit-intensity TX: ∫ b_R L dω at the RX.
+    bounce1: 'surface' (stratified surface quadrature, the integrator's default) or 'cone'
+    (TX-cone path tracing); surface_spacing: its facet size in m (default: the
+    integrator's). amplitude: 'intensity' (energy) or 'pressure' (the seed's Eq. (1)); the
+    complex 'coherent' model cannot be stored in a float32 transients file (use
+    :func:`iter_render` or ``simulate``). speckle_seed: unused here.
     """
     paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
+    props = estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)
+    if amplitude == "coherent":
+        raise InputError("amplitude 'coherent' gives complex histograms, which a transients "
+                         "file (float32) cannot hold; simulate a dataset instead")
     if path_range is None and box is None:
         box = scene_box(scene)
     window = path_window(scene, poses, fs=fs, oversample=oversample, sound_speed=sound_speed,
@@ -200,9 +253,13 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
     out = np.empty((len(poses), bounces, window.n_bins), np.float32)
     for sl, hist in iter_render(scene, poses, paths_per_pose=paths_per_pose, bounces=bounces,
                                 seed=seed, chunk_size=chunk_size, beams=beams,
-                                memory_budget=memory_budget, progress=progress, window=window):
+                                memory_budget=memory_budget, progress=progress, window=window,
+                                bounce1=bounce1, amplitude=amplitude,
+                                surface_spacing=surface_spacing):
         out[sl] = hist
-    meta = {"integrator": "sonar_transient", "mode": "intensity",
+    meta = {"integrator": "sonar_transient", "mode": amplitude, "amplitude_model": amplitude,
+            "bounce1": props.get("bounce1", "surface"),
+            **{k: v for k, v in props.items() if k == "surface_spacing"},
             "paths_per_pose": paths_per_pose, "bounces": bounces, "seed": seed,
             "beams": _beam_settings(beams),
             "window": "path_range" if path_range is not None else "crop_window"}
