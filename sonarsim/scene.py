@@ -30,7 +30,8 @@ File format (every key is optional unless marked)::
     scale = 1.0                     # number or [sx, sy, sz], about the origin
     translate = [0, 0, 0]           # applied last
     albedo = 1.0                    # Lambertian albedo in [0, 1]
-    smooth = true                   # smooth shading normals (creases > 30 deg stay sharp)
+    normals = "auto"                # shading normals: "auto" | "file" | "smooth" | "flat"
+    smooth = true                   # older spelling: true = "smooth", false = "flat"
 
 Transform order per object: build (shape at `center`, or mesh as loaded) -> `fit` ->
 `scale` -> `translate`.
@@ -51,12 +52,18 @@ silently, since the rendering only needs surfaces (the reference's own bunny is 
 
 Rendering: every object becomes a Mitsuba ``mesh`` with a two-sided ``diffuse`` BSDF with
 reflectance = albedo; the ground is a ``rectangle`` with the same BSDF, as in the reference
-renderer (REFERENCE_SPEC §6.1: twosided diffuse, reflectance 1). With ``smooth = true`` (the
-default) the mesh carries smooth shading normals, like Mitsuba's own loaders compute for
-mesh files without normals (used by the reference), but edges sharper than 30° keep
-separate normals (:func:`corner_normals`): a cube stays flat-shaded, a faceted sphere
-shades like a true sphere. The geometry itself (and :meth:`SceneSpec.gt_mesh`) is the
-triangle mesh as given. ``smooth = false`` uses the flat face normals.
+renderer (twosided diffuse, reflectance 1). Shading normals (``normals``, docs/scenes.md):
+
+* ``"file"``: the normals stored in the mesh file (OBJ ``vn``, PLY ``nx ny nz``), per
+  triangle corner and normalised, as Mitsuba's own loaders (and so mitransient and the
+  reference renderer) use them; an error for a file without normals or a procedural shape;
+* ``"smooth"``: sonarsim's smoothed normals: area-weighted vertex normals that keep edges
+  sharper than 30° (:func:`corner_normals`): a cube stays flat, a faceted sphere shades
+  like a true sphere;
+* ``"flat"``: the triangles' own (geometric) normals;
+* ``"auto"`` (default): ``"file"`` when the mesh file has normals, else ``"smooth"``.
+
+The geometry itself (and :meth:`SceneSpec.gt_mesh`) is always the triangle mesh as given.
 """
 from __future__ import annotations
 
@@ -78,11 +85,13 @@ SHAPES = ("sphere", "cube", "cylinder")
 DEFAULT_FIT_FILL = 0.6
 DEFAULT_GROUND_SIZE = (0.4, 0.4)
 CREASE_ANGLE_DEG = 30.0
+FILE_NORMALS_KEY = "sonarsim_file_normals"   # trimesh metadata: the file's corner normals
 
 _TOP_KEYS = {"name", "description", "ground", "box", "object"}
 _GROUND_KEYS = {"albedo", "size"}
 _BOX_KEYS = {"lo", "hi"}
-_COMMON_KEYS = {"name", "albedo", "scale", "translate", "smooth"}
+_COMMON_KEYS = {"name", "albedo", "scale", "translate", "smooth", "normals"}
+NORMALS = ("auto", "file", "smooth", "flat")
 _OBJECT_KEYS = {
     "sphere": _COMMON_KEYS | {"shape", "radius", "center", "subdivisions"},
     "cube": _COMMON_KEYS | {"shape", "size", "center"},
@@ -104,11 +113,19 @@ class Ground:
 
 @dataclass(frozen=True)
 class SceneObject:
-    """One object: a triangle mesh in world coordinates (metres) and its Lambertian albedo."""
+    """One object: a triangle mesh in world coordinates (metres), its Lambertian albedo and
+    its shading normals: ``normals`` is 'file', 'smooth' or 'flat' (resolved from 'auto');
+    ``file_normals`` [F, 3, 3] the mesh file's unit normals per triangle corner (or None)."""
     label: str
     mesh: trimesh.Trimesh
     albedo: float = 1.0
-    smooth: bool = True
+    normals: str = "smooth"
+    file_normals: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def smooth(self) -> bool:
+        """Whether the shading normals are interpolated (not the flat triangle normals)."""
+        return self.normals != "flat"
 
 
 @dataclass(frozen=True)
@@ -153,7 +170,12 @@ def _diffuse(albedo: float) -> dict:
 def _mitsuba_mesh(mi, name: str, obj: SceneObject):
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "twosided", "material": _diffuse(obj.albedo)})
-    if obj.smooth:
+    if obj.normals == "file":
+        faces = np.asarray(obj.mesh.faces)
+        vertices = np.asarray(obj.mesh.vertices)[faces.ravel()]
+        faces = np.arange(3 * len(faces)).reshape(-1, 3)
+        normals = np.asarray(obj.file_normals).reshape(-1, 3)
+    elif obj.normals == "smooth":
         vertices, faces, normals = corner_normals(obj.mesh)
     else:
         vertices, faces, normals = obj.mesh.vertices, obj.mesh.faces, None
@@ -313,12 +335,19 @@ def _parse_object(raw: dict, index: int, box: SceneBox, ctx: _Ctx) -> SceneObjec
     label = _string(raw, "name", "", ctx, f"{where}.name") or \
         (f"{where} ({kind})" if has_shape else f"{where} ({raw['mesh']})")
     albedo = _albedo(raw, ctx, f"{where}.albedo")
-    smooth = raw.get("smooth", True)
-    if not isinstance(smooth, bool):
+    smooth = raw.get("smooth")
+    if smooth is not None and not isinstance(smooth, bool):
         raise ctx.error(f"{where}.smooth", "must be true or false")
+    mode = raw.get("normals", "auto" if smooth is None else ("smooth" if smooth else "flat"))
+    if "normals" in raw and smooth is not None:
+        raise ctx.error(f"{where}.smooth", "give `normals` or the older `smooth`, not both")
+    if mode not in NORMALS:
+        raise ctx.error(f"{where}.normals", f"must be one of {', '.join(NORMALS)} (got {mode!r})")
+    file_normals = None
 
     if kind == "mesh":
         mesh = _load_mesh_file(raw, where, ctx)
+        file_normals = mesh.metadata.get(FILE_NORMALS_KEY)
         fit = raw.get("fit", False)
         if not isinstance(fit, bool):
             raise ctx.error(f"{where}.fit", "must be true or false")
@@ -340,7 +369,18 @@ def _parse_object(raw: dict, index: int, box: SceneBox, ctx: _Ctx) -> SceneObjec
     translate = _vector(raw, "translate", 3, ctx, f"{where}.translate", default=(0.0, 0.0, 0.0))
     vertices = mesh.vertices * scale_vec + translate
     mesh = trimesh.Trimesh(vertices=vertices, faces=mesh.faces, process=False)
-    return SceneObject(label=label, mesh=mesh, albedo=albedo, smooth=smooth)
+    if mode == "file" and file_normals is None:
+        raise ctx.error(f"{where}.normals", "'file' needs a mesh file with vertex normals "
+                                            "(this object has none; use 'smooth' or 'flat')")
+    if mode == "auto":
+        mode = "file" if file_normals is not None else "smooth"
+    if mode == "file":   # normals transform with the inverse transpose of the scale
+        n = file_normals / scale_vec
+        file_normals = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    else:
+        file_normals = None
+    return SceneObject(label=label, mesh=mesh, albedo=albedo, normals=mode,
+                       file_normals=file_normals)
 
 
 def fit_to_box(mesh: trimesh.Trimesh, box: SceneBox, fill: float = DEFAULT_FIT_FILL) -> trimesh.Trimesh:
@@ -432,13 +472,35 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
         warnings.warn(f"{path}: dropped {int(np.sum(~good))} degenerate (zero-area) triangles "
                       f"of {len(faces)}", SceneWarning, stacklevel=2)
         faces = faces[good]
+    normals = _file_vertex_normals(loaded)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+    if normals is not None and len(mesh.faces) == len(faces):
+        mesh.metadata[FILE_NORMALS_KEY] = normals[faces]          # [F, 3 corners, 3]
     _, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
     n_nonmanifold = int(np.sum(counts > 2))
     if n_nonmanifold:
         warnings.warn(f"{path}: {n_nonmanifold} non-manifold edges (shared by more than two "
                       f"triangles)", SceneWarning, stacklevel=2)
     return mesh
+
+
+def _file_vertex_normals(loaded: trimesh.Trimesh) -> np.ndarray | None:
+    """The unit vertex normals [V, 3] stored in the mesh file, or None if it has none.
+
+    trimesh keeps normals read from a file in its cache (it computes them only when asked),
+    and its loaders split vertices whose corners carry different normals.
+    """
+    cache = getattr(getattr(loaded, "_cache", None), "cache", {})
+    normals = cache.get("vertex_normals") if hasattr(cache, "get") else None
+    if normals is None:
+        return None
+    normals = np.asarray(normals, float)
+    if normals.shape != np.asarray(loaded.vertices).shape:
+        return None
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if not np.all(np.isfinite(normals)) or np.any(length == 0):
+        return None
+    return normals / length
 
 
 def _load_mesh_file(raw: dict, where: str, ctx: _Ctx) -> trimesh.Trimesh:

@@ -298,3 +298,62 @@ def test_smooth_shading_normals_keep_creases(mi, tmp_path):
     np.testing.assert_allclose(sh, [[0, 0, 1]] * len(sh), atol=1e-6)
     p, sh, geo = normals_at(-0.12, 0.0, 1.0, 0.012)             # smooth = false: face normals
     np.testing.assert_allclose(sh, geo, atol=1e-6)
+
+
+PLATE_OBJ = """v -0.05 -0.05 0.1
+v 0.05 -0.05 0.1
+v 0.05 0.05 0.1
+v -0.05 0.05 0.1
+vn -0.6 0.0 0.8
+vn 0.6 0.0 0.8
+vn 0.6 0.0 0.8
+vn -1.2 0.0 1.6
+f 1//1 2//2 3//3
+f 1//1 3//3 4//4
+"""
+
+
+@pytest.mark.parametrize("mode", ["auto", "file", "smooth", "flat"])
+def test_normals_option(mi, tmp_path, mode):
+    """A flat plate whose file normals tilt ±37° about y: 'file' (and 'auto') interpolate
+    the file's normals (normalised, and transformed by a non-uniform scale), 'smooth' and
+    'flat' give the plate's own normal +z."""
+    (tmp_path / "plate.obj").write_text(PLATE_OBJ)
+    spec = load_scene(write(tmp_path, f"""
+        ground = false
+        [[object]]
+        mesh = "plate.obj"
+        scale = [2.0, 1.0, 1.0]
+        translate = [0.0, 0.0, -0.1]
+        normals = "{mode}"
+    """))
+    obj = spec.objects[0]
+    assert obj.normals == ("file" if mode == "auto" else mode)
+    scene = spec.to_mitsuba()
+    x = np.array([-0.09, -0.05, 0.0, 0.05, 0.09])
+    ray = mi.Ray3f(mi.Point3f(x, np.zeros(5) - 0.02, np.ones(5)), mi.Vector3f(0, 0, -1))
+    si = scene.ray_intersect(ray)
+    shading = np.array([np.asarray(c) for c in si.sh_frame.n]).T
+    if obj.normals == "file":
+        # Corner normals (±0.6, 0, 0.8) (one given unnormalised) -> scaled by 1/[2, 1, 1]
+        # -> (±0.3, 0, 0.8)/|.|, interpolated across the plate from left to right.
+        left, right = np.array([-0.3, 0, 0.8]), np.array([0.3, 0, 0.8])
+        left, right = left / np.linalg.norm(left), right / np.linalg.norm(right)
+        assert shading[0, 0] < -0.3 and shading[-1, 0] > 0.3        # tilted at the edges
+        np.testing.assert_allclose(shading[0], left, atol=0.06)
+        np.testing.assert_allclose(shading[-1], right, atol=0.06)
+        np.testing.assert_allclose(np.linalg.norm(shading, axis=1), 1.0, atol=1e-5)
+    else:
+        np.testing.assert_allclose(np.abs(shading), [[0, 0, 1]] * 5, atol=1e-6)
+
+
+def test_normals_option_errors(tmp_path):
+    with pytest.raises(FormatError, match="normals"):
+        load_scene(write(tmp_path, '[[object]]\nshape = "sphere"\nradius = 0.05\nnormals = "file"\n'))
+    with pytest.raises(FormatError, match="normals"):
+        load_scene(write(tmp_path, '[[object]]\nshape = "sphere"\nradius = 0.05\nnormals = "round"\n'))
+    with pytest.raises(FormatError, match="not both"):
+        load_scene(write(tmp_path, '[[object]]\nshape = "sphere"\nradius = 0.05\n'
+                                   'normals = "flat"\nsmooth = true\n'))
+    assert load_scene(write(tmp_path, '[[object]]\nshape = "sphere"\nradius = 0.05\n'
+                                      'smooth = false\n')).objects[0].normals == "flat"
