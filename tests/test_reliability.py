@@ -233,3 +233,91 @@ def test_info_valid_dataset_exits_zero(ds_file, capsys):
     assert sonarsim_main(["info", str(ds_file)]) == 0
     out = capsys.readouterr().out
     assert "PROBLEMS" not in out and "N = 24 pings" in out
+
+
+# ----------------------------------------------------------------------------- importers
+
+def _shared_tuple_bomb(depth: int, as_key: bool) -> bytes:
+    """t0 = (); t(i+1) = (t(i), t(i)) through the memo: a few bytes per level, 2^depth
+    leaves. As a dictionary key (hashed while loading) or as the top-level 'wfm_data'."""
+    out = bytearray(b"\x80\x02)q\x000")             # PROTO 2, EMPTY_TUPLE, BINPUT 0, POP
+    for i in range(depth):       # BINGET i, BINGET i, TUPLE2, BINPUT i+1, POP
+        out += b"h" + bytes([i]) + b"h" + bytes([i]) + b"\x86q" + bytes([i + 1]) + b"0"
+    top = b"h" + bytes([depth])
+    if as_key:
+        out = b"\x80\x02}q\xfe" + bytes(out[2:]) + top + b"N" + b"s."   # {t: None}
+    else:
+        out = (b"\x80\x02}q\xfeX\x08\x00\x00\x00wfm_data" + bytes(out[2:]) + top
+               + b"s.")                                 # {'wfm_data': t}
+    return bytes(out)
+
+
+@pytest.mark.parametrize("depth, as_key, message", [
+    (34, True, "nested deeper than"),
+    (34, False, "nested deeper than"),
+    (20, True, "dictionary key or set member of type tuple"),
+    (20, False, "field 'wfm_data' is a tuple, expected a NumPy array"),
+])
+def test_pickle_bombs_are_refused_fast(tmp_path, capsys, depth, as_key, message):
+    from sonarsim.importers.pik import import_pik
+    path = tmp_path / "system_data.pik"
+    path.write_bytes(_shared_tuple_bomb(depth, as_key))
+    assert len(path.read_bytes()) < 320
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match=message):
+        import_pik(path)
+    assert time.perf_counter() - start < 5
+    out = tmp_path / "d.h5"
+    assert sonarsim_main(["import-pik", str(path), "--out", str(out)]) == 2
+    assert message in one_line_error(capsys)
+    assert not out.exists()
+
+
+def test_pickle_length_field_beyond_the_file_is_refused(tmp_path):
+    from sonarsim.importers.pik import load_system_pickle
+    path = tmp_path / "system_data.pik"
+    path.write_bytes(b"\x80\x04\x8e" + (2**40).to_bytes(8, "little") + b"abc")  # BINBYTES8
+    with pytest.raises(FormatError, match="only 3 remain"):
+        load_system_pickle(path)
+
+
+AIRSAS_SCAN = "airsas_real/small_features_cutout_5k"
+
+
+@pytest.fixture()
+def small_scan(shared_data, tmp_path):
+    import shutil
+    src, dst = shared_data / AIRSAS_SCAN, tmp_path / "scan"
+    dst.mkdir()
+    for name in ("SysParams.csv", "WaveformParams.csv", "Waveforms.csv"):
+        shutil.copy(src / name, dst / name)
+    lines = (src / "Coordinates.csv").read_text().splitlines()[:3]
+    (dst / "Coordinates.csv").write_text("\n".join(lines) + "\n")
+    for i in (1, 2):
+        shutil.copy(src / f"Flight-{i:06d}.csv", dst / f"Flight-{i:06d}.csv")
+    return dst
+
+
+def _set_group_delay(scan: Path, value: str) -> None:
+    path = scan / "SysParams.csv"
+    lines = [f"Group Delay,{value}" if ln.startswith("Group Delay") else ln
+             for ln in path.read_text().splitlines()]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("header-only", "Coordinates.csv: line 2: no data rows (only a header)"),
+    ("delay 1e9", "field 'Group Delay' = 1e+09 samples is not shorter than"),
+    ("delay -1e9", "field 'Group Delay' = -1e+09 samples is not shorter than"),
+])
+def test_import_airsas_refuses_damaged_scans(small_scan, tmp_path, capsys, damage, message):
+    if damage == "header-only":
+        coords = small_scan / "Coordinates.csv"
+        coords.write_text(coords.read_text().splitlines()[0] + "\n")
+    else:
+        _set_group_delay(small_scan, damage.split()[1])
+    out = tmp_path / "d.h5"
+    assert sonarsim_main(["import-airsas", str(small_scan), "--out", str(out),
+                          "--no-progress"]) == 2
+    assert message in one_line_error(capsys)
+    assert not out.exists()

@@ -108,6 +108,8 @@ def read_numeric_table(path: Path, *, skip_header: bool = False,
             header = [c.strip() for c in cells]
             first = 1
     rows = [ln.split(sep) for ln in lines[first:]]
+    if not rows:
+        raise FormatError(f"{path}: line {first + 1}: no data rows (only a header)")
     try:
         values = np.array(rows, dtype=np.float64)
         if values.ndim != 2:
@@ -420,6 +422,10 @@ def import_airsas(scan_dir: str | Path, background_dir: str | Path | None = None
     if background_dir is not None:
         to_check.append((background_dir, flights, bg_counts))
     n_samples = _check_lengths(to_check)
+    if not abs(group_delay) < n_samples:
+        raise FormatError(f"{sys_path}: field 'Group Delay' = {group_delay:g} samples is not "
+                          f"shorter than the {n_samples}-sample recordings; expected the DAQ's "
+                          "delay in samples (e.g. 62.3)")
 
     raw = np.stack(pings)
     del pings

@@ -14,6 +14,21 @@ resolves only
 
 Every other global (``os.system``, ``builtins.eval``, ...) is refused with a
 :class:`~sonarsim.errors.FormatError` before anything is called.
+
+Allowed globals alone do not bound the *work*: a few hundred bytes of shared nested tuples
+(each level referring twice to the one below) expand to 2^depth elements when hashed as a
+dictionary key, converted by ``np.asarray`` or printed. The unpickler (Python's pure-Python
+one, instrumented per opcode) therefore also refuses, before executing the opcode,
+
+- more than :data:`MAX_OPCODES` opcodes or :data:`MAX_OBJECTS` containers;
+- containers nested deeper than :data:`MAX_DEPTH` (shared references count at each use);
+- dictionary keys and set members other than str, bytes, int, float, bool or None (the
+  schema's dictionaries are keyed by field names), so nothing expensive is ever hashed;
+- a length field larger than what remains of the file;
+
+and the mapping accepts only the expected type at each schema field (NumPy arrays for the
+array fields, numbers for the scalars, schema records for the sub-records), never
+converting or printing anything else.
 """
 from __future__ import annotations
 
@@ -113,8 +128,127 @@ class RefusedGlobal(pickle.UnpicklingError):
     """The pickle names a global outside the allow-list."""
 
 
-class SafeUnpickler(pickle.Unpickler):
-    """Unpickler that resolves only the allow-listed globals described in the module doc."""
+MAX_OPCODES = 5_000_000     # the reference's system_data.pik needs a few hundred
+MAX_OBJECTS = 1_000_000     # containers (tuples, lists, dicts, sets) built
+MAX_DEPTH = 24              # nesting of containers; the schema needs about 6
+_HASHABLE_OK = (str, bytes, int, float, bool, type(None))
+
+
+class _BoundedFile:
+    """A read-only file whose reads never ask for more than what remains of it."""
+
+    def __init__(self, f):
+        self._f = f
+        f.seek(0, 2)
+        self._size = f.tell()
+        f.seek(0)
+
+    def read(self, n: int = -1) -> bytes:
+        remaining = self._size - self._f.tell()
+        if n is None or n < 0 or n > remaining:
+            if n is not None and n > remaining:
+                raise pickle.UnpicklingError(
+                    f"a length field asks for {n} bytes, only {remaining} remain")
+            n = remaining
+        return self._f.read(n)
+
+    def readline(self) -> bytes:
+        return self._f.readline(1 << 20)
+
+
+def _container_ops() -> dict[int, str]:
+    """Opcodes (byte values) that build or fill containers, by what they do."""
+    names = {
+        "TUPLE": "mark", "LIST": "mark", "DICT": "mark", "FROZENSET": "mark",
+        "TUPLE1": "top1", "TUPLE2": "top2", "TUPLE3": "top3",
+        "APPEND": "append", "APPENDS": "appends", "SETITEM": "setitem",
+        "SETITEMS": "setitems", "ADDITEMS": "additems",
+    }
+    out = {}
+    for name, what in names.items():
+        code = getattr(pickle, name, None)
+        if code is not None:
+            out[code[0]] = what
+    return out
+
+
+_CONTAINER_OPS = _container_ops()
+
+
+class SafeUnpickler(pickle._Unpickler):
+    """Unpickler that resolves only the allow-listed globals and bounds its own work
+    (both described in the module doc)."""
+
+    def __init__(self, file, **kwargs):
+        super().__init__(_BoundedFile(file), **kwargs)
+        self._ops = 0
+        self._objects = 0
+        self._depth: dict[int, tuple[object, int]] = {}    # id -> (object kept alive, depth)
+
+    # ---- bookkeeping of container depth
+    def _depth_of(self, obj) -> int:
+        entry = self._depth.get(id(obj))
+        return entry[1] if entry is not None and entry[0] is obj else 0
+
+    def _set_depth(self, obj, depth: int) -> None:
+        if depth > MAX_DEPTH:
+            raise pickle.UnpicklingError(f"containers nested deeper than {MAX_DEPTH} levels")
+        self._depth[id(obj)] = (obj, depth)
+
+    def _new_container(self, obj, children) -> None:
+        self._objects += 1
+        if self._objects > MAX_OBJECTS:
+            raise pickle.UnpicklingError(f"more than {MAX_OBJECTS} containers")
+        self._set_depth(obj, 1 + max((self._depth_of(c) for c in children), default=0))
+
+    @staticmethod
+    def _check_keys(keys) -> None:
+        for key in keys:
+            if not isinstance(key, _HASHABLE_OK):
+                raise pickle.UnpicklingError(
+                    f"a dictionary key or set member of type {type(key).__name__}; the "
+                    "schema's keys are names")
+
+    def _checked(self, what: str, op):
+        """Run opcode function ``op`` after the checks for ``what`` (see _CONTAINER_OPS)."""
+        stack = self.stack
+        if what in ("setitem",):
+            self._check_keys([stack[-2]])
+        elif what in ("setitems", "dict"):
+            self._check_keys(stack[0::2])
+        elif what in ("additems",):
+            self._check_keys(stack)
+        elif what == "mark" and self.metastack is not None:
+            pass
+        target = None
+        if what in ("append", "setitem"):
+            target, children = stack[-3 if what == "setitem" else -2], stack[-2 if what == "setitem" else -1:]
+        elif what in ("appends", "setitems", "additems"):
+            target, children = self.metastack[-1][-1], list(stack)
+        elif what == "mark":
+            children = list(stack)
+        else:  # top1/2/3
+            children = stack[-int(what[-1]):]
+        op(self)
+        if target is not None:
+            self._set_depth(target, max(self._depth_of(target),
+                                        1 + max((self._depth_of(c) for c in children), default=0)))
+        else:
+            self._new_container(self.stack[-1], children)
+
+    def _dispatch_one(self, code: int):
+        self._ops += 1
+        if self._ops > MAX_OPCODES:
+            raise pickle.UnpicklingError(f"more than {MAX_OPCODES} pickle opcodes")
+        op = pickle._Unpickler.dispatch[code]
+        what = _CONTAINER_OPS.get(code)
+        if what is None:
+            return op(self)
+        if what == "mark" and code == pickle.DICT[0]:
+            self._check_keys(self.stack[0::2])
+        if what == "mark" and code == pickle.FROZENSET[0]:
+            self._check_keys(self.stack)
+        return self._checked(what, op)
 
     def find_class(self, module: str, name: str):
         module = _PY2_MODULES.get(module, module)
@@ -135,6 +269,18 @@ class SafeUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError("persistent references are not allowed")
 
 
+class _Dispatch(dict):
+    """``SafeUnpickler.dispatch``: every opcode goes through ``_dispatch_one``."""
+
+    def __missing__(self, code):
+        if code not in pickle._Unpickler.dispatch:
+            raise KeyError(code)
+        return lambda unpickler, _c=code: unpickler._dispatch_one(_c)
+
+
+SafeUnpickler.dispatch = _Dispatch()
+
+
 def load_system_pickle(path: str | Path) -> SchemaRecord:
     """Unpickle a ``system_data.pik`` safely; returns the ``SASDataSchema`` holder."""
     path = Path(path)
@@ -147,7 +293,7 @@ def load_system_pickle(path: str | Path) -> SchemaRecord:
         raise FormatError(f"{path}: {exc}") from None
     except (pickle.UnpicklingError, EOFError) as exc:
         raise FormatError(f"{path}: not a readable pickle ({exc or 'truncated'})") from None
-    except MemoryError:
+    except (MemoryError, RecursionError):
         raise FormatError(f"{path}: pickle asks for more memory than available") from None
     except Exception as exc:          # malformed opcodes surface as many exception types
         raise FormatError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") \
@@ -170,10 +316,13 @@ def _array(record: SchemaRecord, key: str, path: Path, *, ndim: int | None = Non
         if required:
             raise FormatError(f"{path}: field {key!r} is missing")
         return None
-    try:
-        arr = np.asarray(value)
-    except Exception:
-        raise FormatError(f"{path}: field {key!r} is not an array") from None
+    flat_numbers = isinstance(value, (list, tuple)) and len(value) <= 4096 and all(
+        isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in value)
+    if not (isinstance(value, np.ndarray) or flat_numbers):
+        # never convert (or print) anything else: nested shared tuples expand exponentially
+        raise FormatError(f"{path}: field {key!r} is a {type(value).__name__}, expected a "
+                          "NumPy array")
+    arr = np.asarray(value)
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
         raise FormatError(f"{path}: field {key!r} has non-numeric dtype {arr.dtype}")
     if real and np.iscomplexobj(arr):
@@ -191,10 +340,12 @@ def _scalar(record: SchemaRecord | None, key: str, where: str, required: bool = 
         if required:
             raise FormatError(f"{where}: field {key!r} is missing")
         return None
-    try:
-        out = float(np.asarray(value).reshape(()))
-    except Exception:
-        raise FormatError(f"{where}: field {key!r} = {value!r} is not a number") from None
+    ok = (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)) or \
+        (isinstance(value, np.ndarray) and value.size == 1 and value.dtype.kind in "fiu")
+    if not ok:                              # never convert (or print) anything else
+        raise FormatError(f"{where}: field {key!r} is a {type(value).__name__}, expected a "
+                          "number")
+    out = float(np.asarray(value).reshape(()))
     if not np.isfinite(out):
         raise FormatError(f"{where}: field {key!r} is {out}")
     return out
