@@ -1,0 +1,460 @@
+"""Run many independent tasks on dask.distributed: the execution engine of ``sonarsim batch``.
+
+The engine knows nothing about sonar: it runs :class:`Task` objects (a module-level function,
+its arguments and the tasks whose results it needs) and returns one :class:`Outcome` per task.
+``sonarsim batch`` (:mod:`sonarsim.batch`) and ``benchmarks/table2.py --scheduler`` both go
+through it.
+
+Where the tasks run (:class:`Engine`):
+
+* **a local cluster** (default): a ``distributed.LocalCluster`` of worker *processes*
+  (one Dask thread each, so one task per process at a time), with the cores divided between
+  the workers and Dr.Jit's own threads (:func:`plan_local_cluster`); when NVIDIA GPUs are
+  present, one worker per GPU with ``CUDA_VISIBLE_DEVICES`` set to it and the
+  ``cuda_ad_mono`` variant;
+* **an existing cluster** (``scheduler="tcp://host:8786"``): started with ``dask scheduler``
+  and ``dask worker`` (docs/batch.md); the workers need the same sonarsim installation and
+  the same file system paths;
+* **in this process** (``scheduler="sequential"``): the tasks one after the other, no Dask
+  (for debugging and as the benchmark's baseline).
+
+Failures: a task that raises a :class:`sonarsim.errors.SonarsimError` (a bad input such as a
+missing mesh) fails at once, since running it again gives the same error; any other exception
+(a bug, a full disk, memory) is retried ``retries`` times by Dask. A worker process that dies
+mid-task loses only that task, which Dask runs again on another worker (up to Dask's
+``distributed.scheduler.allowed-failures``, 3 by default). Failed tasks are reported with their
+error; the others run on. A task whose needed task failed is not run.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+from .errors import InputError, SonarsimError
+
+SEQUENTIAL = "sequential"
+MEMORY_PER_WORKER = 2 * 2**30    # bytes a worker may need (a full 54 000-ping scan: ~1.5 GB)
+DEFAULT_RETRIES = 2
+
+
+# ----------------------------------------------------------------------------- tasks
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work.
+
+    ``fn(*args, *needed_results, **kwargs)`` runs on a worker; ``fn`` must be importable there
+    (a module-level function). ``needs``: keys of tasks whose results are appended to ``args``
+    (the task waits for them). ``job``: the job it belongs to; progress counts jobs, a job
+    being finished when all its tasks are.
+    """
+    key: str
+    fn: Callable
+    args: tuple = ()
+    kwargs: Mapping = field(default_factory=dict)
+    needs: tuple[str, ...] = ()
+    job: str = ""
+
+    @property
+    def job_name(self) -> str:
+        return self.job or self.key
+
+
+@dataclass
+class Outcome:
+    """What became of a task: ``status`` 'done' or 'failed', the function's ``result``
+    (done), the ``error`` (one line, failed), the task's ``wall_s`` on its worker (s)."""
+    key: str
+    status: str
+    result: Any = None
+    error: str = ""
+    wall_s: float | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "done"
+
+
+@dataclass(frozen=True)
+class _Returned:
+    """What the worker-side wrapper returns: the result, or a user error (not retried)."""
+    ok: bool
+    value: Any = None
+    error: str = ""
+    wall_s: float = 0.0
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def run_task(fn: Callable, args: tuple, kwargs: Mapping, threads: int | None,
+             variant: str | None, *needed: _Returned) -> _Returned:
+    """Worker-side wrapper of a task: variant and Dr.Jit threads, then ``fn``, timed.
+
+    A failed needed task makes this one fail without running. A :class:`SonarsimError`
+    becomes a returned failure (Dask does not retry it); anything else propagates (Dask
+    retries it).
+    """
+    for dep in needed:
+        if not dep.ok:
+            return _Returned(False, error=f"not run: a task it needs failed ({dep.error})")
+    t0 = time.perf_counter()
+    try:
+        from . import runtime
+        if variant:
+            runtime.set_variant(variant)
+        from .threads import dr_threads
+        with dr_threads(threads):
+            value = fn(*args, *(d.value for d in needed), **dict(kwargs))
+    except SonarsimError as exc:
+        return _Returned(False, error=_one_line(exc), wall_s=time.perf_counter() - t0)
+    return _Returned(True, value=value, wall_s=time.perf_counter() - t0)
+
+
+def check_tasks(tasks: Sequence[Task]) -> list[Task]:
+    """The tasks in an order where every task comes after the tasks it needs (InputError
+    for duplicate keys, unknown needs or cycles)."""
+    by_key: dict[str, Task] = {}
+    for t in tasks:
+        if t.key in by_key:
+            raise InputError(f"two tasks have the key '{t.key}'")
+        by_key[t.key] = t
+    order: list[Task] = []
+    state: dict[str, int] = {}
+
+    def visit(t: Task, path: tuple[str, ...]) -> None:
+        if state.get(t.key) == 2:
+            return
+        if state.get(t.key) == 1:
+            raise InputError(f"tasks need each other in a cycle: {' -> '.join(path + (t.key,))}")
+        state[t.key] = 1
+        for k in t.needs:
+            if k not in by_key:
+                raise InputError(f"task '{t.key}' needs unknown task '{k}'")
+            visit(by_key[k], path + (t.key,))
+        state[t.key] = 2
+        order.append(t)
+
+    for t in tasks:
+        visit(t, ())
+    return order
+
+
+# ----------------------------------------------------------------------------- resources
+
+def detect_gpus() -> list[str]:
+    """Ids of the NVIDIA GPUs this process may use ([] when none or no driver).
+
+    ``CUDA_VISIBLE_DEVICES`` is honoured when set; otherwise ``nvidia-smi -L`` is asked.
+    """
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        ids = [v.strip() for v in visible.split(",") if v.strip()]
+        return [] if ids in ([], ["-1"]) else ids
+    exe = shutil.which("nvidia-smi")
+    if exe is None:
+        return []
+    try:
+        out = subprocess.run([exe, "-L"], capture_output=True, text=True, timeout=20).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [str(i) for i, line in enumerate(l for l in out.splitlines() if l.startswith("GPU "))]
+
+
+def total_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+@dataclass(frozen=True)
+class ClusterPlan:
+    """A local cluster: ``n_workers`` processes, each running one task at a time with
+    ``threads`` Dr.Jit threads; ``gpus``: one device id per worker (cuda_ad_mono) or ()."""
+    n_workers: int
+    threads: int
+    gpus: tuple[str, ...] = ()
+
+    @property
+    def variant(self) -> str | None:
+        return "cuda_ad_mono" if self.gpus else None
+
+    def describe(self) -> str:
+        if self.gpus:
+            return (f"{self.n_workers} worker(s), one per GPU ({', '.join(self.gpus)}), "
+                    f"cuda_ad_mono")
+        return (f"{self.n_workers} worker process(es) x {self.threads} Dr.Jit thread(s)")
+
+
+def plan_local_cluster(n_tasks: int, *, cores: int | None = None, gpus: Sequence[str] = (),
+                       workers: int | None = None, threads: int | None = None,
+                       memory: int | None = None, variant: str | None = None) -> ClusterPlan:
+    """How to divide this machine between Dask workers and Dr.Jit threads.
+
+    With GPUs (and no explicit ``llvm`` variant): one worker per GPU. On the CPU the jobs
+    are independent, so throughput is best with as many single-task workers as there are
+    cores (the serial parts of a job, such as scene loading, FFT convolution and file
+    writing, then overlap too), capped by the number of tasks and by memory (2 GiB per
+    worker); the cores left over go to each worker's Dr.Jit threads. ``workers`` and
+    ``threads`` override the defaults.
+    """
+    cores = max(1, cores or os.cpu_count() or 1)
+    n_tasks = max(1, int(n_tasks))
+    for name, value in (("workers", workers), ("threads", threads)):
+        if value is not None and (int(value) != value or value < 1):
+            raise InputError(f"--{name} must be a positive integer, got {value}")
+    use_gpus = tuple(gpus) if gpus and not (variant or "").startswith("llvm") else ()
+    if use_gpus:
+        n = workers or len(use_gpus)
+        chosen = tuple(use_gpus[i % len(use_gpus)] for i in range(n))
+        return ClusterPlan(n, threads or max(1, cores // n), chosen)
+    if workers is None:
+        cap = cores
+        if memory:
+            cap = min(cap, max(1, memory // MEMORY_PER_WORKER))
+        workers = max(1, min(n_tasks, cap))
+    return ClusterPlan(int(workers), int(threads or max(1, cores // workers)))
+
+
+# ----------------------------------------------------------------------------- engine
+
+class Engine:
+    """Where tasks run; a context manager that starts and stops a local cluster if needed.
+
+    ``scheduler``: None (a local cluster), an address such as ``tcp://host:8786`` (an
+    existing cluster), or ``'sequential'`` (this process, no Dask). ``client``: an existing
+    ``distributed.Client`` to use instead (tests). ``workers``/``threads``: local cluster
+    size (see :func:`plan_local_cluster`); ``threads`` also sets Dr.Jit's threads per task on
+    an existing cluster (default: the worker's own setting). ``retries``: extra attempts of a
+    task that failed unexpectedly. ``variant``: Mitsuba variant for every task (default: each
+    worker's ``SONARSIM_VARIANT``, cuda_ad_mono on a local GPU cluster).
+    """
+
+    def __init__(self, scheduler: str | None = None, *, workers: int | None = None,
+                 threads: int | None = None, retries: int = DEFAULT_RETRIES,
+                 variant: str | None = None, client=None, dashboard: bool = True,
+                 log=print):
+        if int(retries) != retries or retries < 0:
+            raise InputError(f"--retries must be an integer >= 0, got {retries}")
+        self.scheduler, self.workers, self.threads = scheduler, workers, threads
+        self.retries, self.variant, self.dashboard, self.log = int(retries), variant, dashboard, log
+        self.client, self._own, self._own_client, self.plan = client, [], False, None
+        self.task_threads = threads
+        self.description = "existing client" if client is not None else ""
+
+    @property
+    def sequential(self) -> bool:
+        return self.scheduler == SEQUENTIAL
+
+    def __enter__(self) -> "Engine":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for obj in reversed(self._own):
+            try:
+                obj.close()
+            except Exception:       # closing a cluster that lost its workers may complain
+                pass
+        self._own = []
+        if self._own_client:
+            self.client, self._own_client = None, False
+
+    def start(self, n_tasks: int) -> None:
+        """Start (or connect to) the cluster for ``n_tasks`` tasks and say where they run."""
+        if self.client is not None or self.sequential:
+            if self.sequential:
+                self.description = "this process, one task after the other"
+            return
+        from distributed import Client
+        if self.scheduler:
+            try:
+                self.client = Client(self.scheduler, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise InputError(f"cannot connect to the Dask scheduler at {self.scheduler} "
+                                 f"({_one_line(exc)})") from None
+            self._own.append(self.client)
+            self._own_client = True
+            n = len(self.client.scheduler_info().get("workers", {}))
+            self.description = f"Dask scheduler {self.scheduler} ({n} worker(s) now)"
+            self._check_versions()
+        else:
+            self.plan = plan_local_cluster(n_tasks, gpus=detect_gpus(), workers=self.workers,
+                                           threads=self.threads, memory=total_memory(),
+                                           variant=self.variant)
+            cluster = self._local_cluster(self.plan)
+            self._own.append(cluster)
+            self.client = Client(cluster)
+            self._own.append(self.client)
+            self._own_client = True
+            self.task_threads = self.threads or self.plan.threads
+            if self.plan.variant and not self.variant:
+                self.variant = self.plan.variant
+            self.description = f"local cluster: {self.plan.describe()}"
+        self.log(f"batch: running on {self.description}")
+        self.log(f"batch: dashboard {self.dashboard_address()}")
+
+    def dashboard_address(self) -> str:
+        import importlib.util
+        if self.client is None:
+            return "none"
+        if self.scheduler is None and importlib.util.find_spec("bokeh") is None:
+            return "not available (the dashboard needs bokeh: pip install 'bokeh>=3.1')"
+        return self.client.dashboard_link
+
+    def _local_cluster(self, plan: ClusterPlan):
+        import importlib.util
+        from distributed import LocalCluster
+        with_dashboard = self.dashboard and importlib.util.find_spec("bokeh") is not None
+        address = ":8787" if with_dashboard else None
+        memory = total_memory()
+        limit = max(MEMORY_PER_WORKER, memory // plan.n_workers) if memory else "auto"
+        if not plan.gpus:
+            return LocalCluster(n_workers=plan.n_workers, threads_per_worker=1, processes=True,
+                                dashboard_address=address, memory_limit=limit,
+                                silence_logs=logging.CRITICAL)
+        from distributed import Nanny, Scheduler, SpecCluster
+        return SpecCluster(scheduler={"cls": Scheduler, "options": {
+                               "dashboard_address": address}},
+                           workers=gpu_worker_specs(plan, limit), silence_logs=logging.CRITICAL)
+
+    def _check_versions(self) -> None:
+        from . import __version__
+        try:
+            seen = self.client.run(_sonarsim_version)
+        except Exception as exc:
+            self.log(f"batch: warning: cannot ask the workers for their sonarsim version "
+                     f"({_one_line(exc)})")
+            return
+        other = sorted({v for v in seen.values() if v != __version__})
+        if other:
+            self.log(f"batch: warning: workers run sonarsim {', '.join(other)}, this is "
+                     f"{__version__}")
+
+    # ---- running
+    def run(self, tasks: Sequence[Task], *, progress: bool = True,
+            on_job: Callable[[str, dict[str, Outcome]], None] | None = None
+            ) -> dict[str, Outcome]:
+        """Run ``tasks`` (see :class:`Task`); returns {key: Outcome}. ``on_job(job, outcomes)``
+        is called in this process as each job's last task finishes."""
+        from .progress import progress_bar
+        ordered = check_tasks(tasks)
+        if not ordered:
+            return {}
+        self.start(len(ordered))
+        jobs: dict[str, list[str]] = {}
+        for t in ordered:
+            jobs.setdefault(t.job_name, []).append(t.key)
+        outcomes: dict[str, Outcome] = {}
+        bar = progress_bar(len(jobs), progress, unit="job", desc="batch")
+        pending = {job: set(keys) for job, keys in jobs.items()}
+
+        def finished(outcome: Outcome, task: Task) -> None:
+            outcomes[outcome.key] = outcome
+            left = pending[task.job_name]
+            left.discard(outcome.key)
+            if not left:
+                bar.update(1)
+                if on_job is not None:
+                    on_job(task.job_name, {k: outcomes[k] for k in jobs[task.job_name]})
+
+        try:
+            if self.sequential:
+                self._run_here(ordered, finished)
+            else:
+                self._run_dask(ordered, finished)
+        finally:
+            bar.close()
+        return outcomes
+
+    def _run_here(self, ordered: list[Task], finished) -> None:
+        results: dict[str, _Returned] = {}
+        for t in ordered:
+            needed = [results[k] for k in t.needs]
+            for attempt in range(self.retries + 1):
+                try:
+                    got = run_task(t.fn, t.args, t.kwargs, self.task_threads, self.variant,
+                                   *needed)
+                    break
+                except Exception as exc:       # a bug or a resource problem: retried
+                    got = _Returned(False, error=_one_line(exc))
+                    if attempt == self.retries:
+                        traceback.print_exc()
+            results[t.key] = got
+            finished(_outcome(t.key, got), t)
+
+    def _run_dask(self, ordered: list[Task], finished) -> None:
+        from distributed import as_completed
+        client = self.client
+        token = uuid.uuid4().hex[:8]
+        futures, by_future = {}, {}
+        for t in ordered:
+            fut = client.submit(run_task, t.fn, t.args, dict(t.kwargs), self.task_threads,
+                                self.variant, *[futures[k] for k in t.needs],
+                                key=f"{_key_prefix(t.key)}-{token}", retries=self.retries,
+                                pure=False)
+            futures[t.key] = fut
+            by_future[fut.key] = t
+        tasks_by_key = {t.key: t for t in ordered}
+        try:
+            for fut in as_completed(list(futures.values())):
+                t = by_future[fut.key]
+                if fut.status == "finished":
+                    outcome = _outcome(t.key, fut.result())
+                else:
+                    failed_need = next((k for k in t.needs if futures[k].status == "error"),
+                                       None)
+                    error = (f"not run: task '{failed_need}' it needs failed" if failed_need
+                             else _one_line(fut.exception()))
+                    outcome = Outcome(t.key, "failed", error=error)
+                finished(outcome, tasks_by_key[t.key])
+        except BaseException:
+            client.cancel(list(futures.values()))
+            raise
+
+
+def _key_prefix(key: str) -> str:
+    """A Dask key without characters Dask treats specially."""
+    return "".join(c if c.isalnum() or c in "._-" else "_" for c in key)
+
+
+def _outcome(key: str, got: _Returned) -> Outcome:
+    return Outcome(key, "done" if got.ok else "failed", result=got.value, error=got.error,
+                   wall_s=got.wall_s)
+
+
+def _sonarsim_version() -> str:
+    from . import __version__
+    return __version__
+
+
+def gpu_worker_specs(plan: ClusterPlan, memory_limit) -> dict:
+    """``SpecCluster`` worker specs: one Nanny per GPU of ``plan``, each seeing only its GPU
+    (``CUDA_VISIBLE_DEVICES``) and running the cuda_ad_mono variant."""
+    from distributed import Nanny
+    return {f"gpu-{i}-{gpu}": {"cls": Nanny, "options": {
+                "nthreads": 1, "memory_limit": memory_limit,
+                "env": {"CUDA_VISIBLE_DEVICES": gpu, "SONARSIM_VARIANT": "cuda_ad_mono"}}}
+            for i, gpu in enumerate(plan.gpus)}
+
+
+def run_calls(fn: Callable, calls: Iterable[tuple[str, Mapping]], *,
+              scheduler: str | None = None, progress: bool = True, **engine_options
+              ) -> dict[str, Outcome]:
+    """Run ``fn(**kwargs)`` for each ``(key, kwargs)`` of ``calls`` through an :class:`Engine`
+    (one job per call); returns {key: Outcome}. For scripts such as benchmarks/table2.py."""
+    tasks = [Task(key, fn, kwargs=dict(kwargs)) for key, kwargs in calls]
+    with Engine(scheduler, **engine_options) as engine:
+        return engine.run(tasks, progress=progress)
