@@ -12,7 +12,7 @@ The sampling density is a :class:`Sampling`: TX-cone paths per pose (bounces >= 
 bounce 1 with the 'cone' estimator) and, for the surface (area) estimator of bounce 1,
 the size of its strata (``surface_spacing``, m; the density is 1/spacing²). Integrator options that change the
 physics or the estimator (bounce-1 estimator, amplitude model, speckle seed) are an
-:class:`Estimator`; a value the integrator does not know is an InputError.
+:class:`Estimator`, passed to :func:`sonarsim.render.make_integrator`.
 """
 from __future__ import annotations
 
@@ -24,10 +24,9 @@ from typing import Mapping
 import numpy as np
 
 from .errors import InputError
-from .render import PathWindow, _beam_settings
+from .render import AMPLITUDES, BOUNCE1_ESTIMATORS, PathWindow
+from .render import make_integrator as render_integrator
 
-AMPLITUDES = ("intensity", "pressure", "coherent")
-BOUNCE1_ESTIMATORS = ("surface", "cone")
 SURFACE_PROP = "surface_spacing"      # integrator property: strata size of the surface estimator
 _MIX = 0x9E3779B9
 
@@ -93,34 +92,16 @@ class Estimator:
         """Whether the histograms may be complex (phase-carrying)."""
         return self.amplitude == "coherent"
 
-    def props(self) -> dict:
-        """Integrator properties (only those that differ from today's intensity default)."""
-        out: dict = {}
-        if self.bounce1 is not None:
-            out["bounce1"] = self.bounce1
-        if self.amplitude != "intensity":
-            out["amplitude"] = self.amplitude
-        if self.amplitude == "coherent":
-            out["speckle_seed"] = int(self.speckle_seed)
-        return out
 
 
 def make_integrator(bounces: int, beams: Mapping | None, estimator: Estimator,
                     sampling: Sampling | None = None):
-    """A ``sonar_transient`` integrator with these beams, estimator and surface spacing."""
-    from . import runtime
-    mi = runtime.mitsuba()
-    props = {"type": "sonar_transient", "max_bounces": int(bounces), **_beam_settings(beams),
-             **estimator.props()}
-    if sampling is not None and sampling.surface_spacing is not None:
-        props[SURFACE_PROP] = float(sampling.surface_spacing)
-    try:
-        return mi.load_dict(props)
-    except (RuntimeError, ValueError, TypeError) as exc:
-        extra = {k: v for k, v in props.items() if k in ("bounce1", "amplitude", "speckle_seed",
-                                                         SURFACE_PROP)}
-        hint = (f" (this integrator may not support {extra})" if extra else "")
-        raise InputError(f"bad integrator settings: {exc}{hint}") from None
+    """A ``sonar_transient`` integrator with these beams, estimator and surface spacing
+    (:func:`sonarsim.render.make_integrator`)."""
+    spacing = None if sampling is None else sampling.surface_spacing
+    return render_integrator(bounces, beams, bounce1=estimator.bounce1,
+                             amplitude=estimator.amplitude, surface_spacing=spacing,
+                             speckle_seed=int(estimator.speckle_seed))
 
 
 def default_surface_spacing(integrator) -> float | None:

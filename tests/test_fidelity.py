@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sonarsim import simulate as sim
+from sonarsim.commands.info import describe
 from sonarsim.dataset import SonarDataset
 from sonarsim.fidelity import mf_energy, noise_budget
 from sonarsim.geometry import trajectory
@@ -123,6 +124,8 @@ def test_automatic_density_reaches_its_target_and_says_so_once(tmp_path, monkeyp
     ds = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "auto.h5", s))
     assert ds.meta["mc_snr_db"] >= 22.0 - sim.SHORTFALL_DB and messages == []
     assert ds.meta["sampling"]["mode"].startswith("automatic")
+    lines = "\n".join(describe(tmp_path / "auto.h5"))
+    assert "Monte-Carlo SNR" in lines and "target 22 dB" in lines
     # Capped density: one notice before the run, none after it.
     monkeypatch.setattr(sim, "MAX_AUTO_PATHS", 2000)
     s = settings(paths_per_pose=None, mc_snr_db=40.0, log=messages.append)
