@@ -1,25 +1,40 @@
 """Time-domain coherent backprojection (delay-and-sum) on Dr.Jit.
 
-For every voxel v and ping i (REFERENCE_SPEC §5.1)::
+For every voxel v and ping i (the reference code's baseline, ``beamformer.py``,
+``backproject_all_airsas_measurements``)::
 
     scene(v) += s_i( (|v - tx_i| + |v - rx_i|) / c_i )
 
 where s_i is the matched-filtered analytic signal of ping i (complex), upsampled by an
 FFT factor R (default 5, as the reference) and then *linearly interpolated* at the exact
-delay. The reference instead truncates the delay to the lower upsampled sample (a bias of
-half an upsampled sample, ≈ 0.34 mm of round-trip path at R = 5); ``interpolation='floor'``
-reproduces that, ``'nearest'`` rounds. Sample k of a waveform is at time
-``(start_sample + k)/fs``; delays outside the recorded window contribute nothing.
+delay (the tent rule of :mod:`recon.interp`). The reference instead truncates the delay to
+the lower upsampled sample (a bias of half an upsampled sample, ≈ 0.34 mm of round-trip path
+at R = 5); ``interpolation='floor'`` reproduces that, ``'nearest'`` rounds. Sample k of a
+waveform is at time ``(start_sample + k)/fs``; delays outside the recorded window contribute
+nothing.
 
-Options: ``incoherent`` sums |s| (REFERENCE_SPEC §5.1 item 5); ``tx_beam_mask`` (full cone
-angle, degrees) only lets a ping contribute to voxels inside its TX cone around the boresight;
-per-ping sound speed from per-ping temperatures (``sonarsim.signals.sound_speed_air``).
+Options: ``incoherent`` sums |s|; ``tx_beam_mask`` (full cone angle, degrees) only lets a ping
+contribute to voxels inside its TX cone around the boresight; per-ping sound speed from
+per-ping temperatures (``sonarsim.signals.sound_speed_air``).
 
-Kernel layout: one launch covers all voxels (lanes) of a voxel chunk and a fixed number of
-pings (Python-unrolled; each ping's constants are size-1 opaque variables, so every launch
-reuses one compiled kernel). The signal buffer holds, per upsampled sample k, the four floats
-(Re s[k], Im s[k], Re s[k+1], Im s[k+1]) so that one packet gather fetches both
-interpolation nodes. Memory: 5 floats per voxel plus two blocks of pings' signals.
+Kernel (one fused kernel per voxel chunk and group of pings): each SIMD lane owns one voxel,
+loops over the pings and accumulates Re/Im in registers; the per-ping constants and the
+upsampled signals are read from compact arrays, and nothing of size voxels × pings is ever
+stored. Lanes are ordered in 4×4×4 voxel bricks, so that the 16 lanes of a vector (and the
+next vectors) read nearby signal samples: the packet gather of the signal, not arithmetic,
+bounds the CPU kernel, and brick order halves its cache misses (benchmarks/bench_backprojection.py).
+Two loop forms over the pings (``loop``):
+
+* ``'unrolled'`` (default on the CPU): 16 pings per launch, unrolled, their constants passed
+  as kernel parameters (opaque scalars: one compiled kernel for every launch); only the
+  accumulators go to memory between launches (8 bytes per voxel per 16 pings).
+* ``'symbolic'`` (default on CUDA): a ``drjit.while_loop`` over a block of pings; the loop
+  index is the lane's ping, whose constants are gathered from a [N·12] array. On the CPU the
+  three extra packet gathers per voxel-ping of the constants cost more than they save.
+
+Signal preparation (matched filter, FFT upsampling, packing) runs in NumPy on the host for
+blocks of 1 024 pings while the asynchronous kernels of the previous block run; at most two
+blocks of signals are alive (≈ 50 MB each for 608-sample pings at R = 5).
 """
 from __future__ import annotations
 
@@ -30,14 +45,17 @@ import numpy as np
 from sonarsim.errors import InputError
 from sonarsim.progress import progress_bar
 
-from . import measurements
+from . import interp, measurements
 from ._jit import jit
 from .grid import Grid
 
 PINGS_PER_LAUNCH = 16          # unrolled pings per kernel (8, 16, 32 measured alike)
+LOOP_PINGS_PER_LAUNCH = 64     # pings per symbolic-loop launch on the CPU (cache-sized)
 PINGS_PER_BLOCK = 1024         # pings whose signals are prepared and uploaded together
 MAX_VOXELS_PER_LAUNCH = 1 << 23
-INTERPOLATIONS = ("linear", "nearest", "floor")
+BRICK = (4, 4, 4)              # lane order: voxel bricks (None = C order, the pre-brick layout)
+INTERPOLATIONS = interp.MODES
+LOOPS = ("auto", "unrolled", "symbolic")
 
 
 def _validate(grid, upsample, interpolation, tx_beam_mask):
@@ -87,36 +105,79 @@ def ping_constants(dataset, upsample: int, per_ping_sound_speed: bool = True,
     return out.astype(np.float32)
 
 
-def _kernel(m, voxels, acc, buf, consts, block_offset, n_up, interpolation: str,
-            masked: bool):
-    """Add PINGS_PER_LAUNCH pings to the accumulators of one voxel chunk (lazy, not evaluated)."""
+def _ping(m, voxels, q, masked: bool):
+    """Fractional upsampled-sample index u and beam mask of one ping at the lanes' voxels.
+    ``q``: the ping's 12 constants (see :func:`ping_constants`)."""
     import drjit as dr
     vx, vy, vz = voxels
+    dx, dy, dz = vx - q[0], vy - q[1], vz - q[2]
+    d1 = dr.sqrt(dr.fma(dx, dx, dr.fma(dy, dy, dz * dz)))
+    ex, ey, ez = vx - q[3], vy - q[4], vz - q[5]
+    d2 = dr.sqrt(dr.fma(ex, ex, dr.fma(ey, ey, ez * ez)))
+    u = dr.fma(d1 + d2, q[6], q[7])
+    mask = True
+    if masked:
+        mask = dr.fma(dx, q[8], dr.fma(dy, q[9], dz * q[10])) >= q[11] * d1
+    return u, mask
+
+
+def _kernel_unrolled(m, voxels, acc, buf, consts, row0, n_up, interpolation: str, masked: bool):
+    """Add PINGS_PER_LAUNCH pings (constants: opaque scalars ``consts[p][c]``, signals at
+    packet rows ``row0 + p·n_up`` of ``buf``) to the accumulators (lazy, not evaluated)."""
     are, aim = acc
-    u_max = m.Float(n_up - 1)
-    for p in range(PINGS_PER_LAUNCH):
-        q = consts[p]
-        dx, dy, dz = vx - q[0], vy - q[1], vz - q[2]
-        d1 = dr.sqrt(dr.fma(dx, dx, dr.fma(dy, dy, dz * dz)))
-        ex, ey, ez = vx - q[3], vy - q[4], vz - q[5]
-        d2 = dr.sqrt(dr.fma(ex, ex, dr.fma(ey, ey, ez * ez)))
-        u = dr.fma(d1 + d2, q[6], q[7])
-        if interpolation == "nearest":
-            u = dr.floor(u + 0.5)
-        valid = (u >= 0) & (u <= u_max)
-        if masked:
-            valid &= dr.fma(dx, q[8], dr.fma(dy, q[9], dz * q[10])) >= q[11] * d1
-        fl = dr.floor(u)
-        k = m.UInt32(m.Int32(fl)) + (block_offset + p) * n_up
-        s = dr.gather(m.Array4f, buf, k, valid)
-        if interpolation == "linear":
-            f = u - fl
-            are += dr.fma(f, s[2] - s[0], s[0])
-            aim += dr.fma(f, s[3] - s[1], s[1])
-        else:
-            are += s[0]
-            aim += s[1]
+    for p, q in enumerate(consts):
+        u, mask = _ping(m, voxels, q, masked)
+        re, im = interp.tent_gather_jit(m, buf, row0 + p * n_up, u, n_up, interpolation, mask)
+        are, aim = are + re, aim + im
     return are, aim
+
+
+def _kernel_symbolic(m, voxels, acc, buf, cbuf, p0, p1, b0, n_up, interpolation: str,
+                     masked: bool):
+    """Add pings p0 … p1−1 (opaque UInt32 scalars) in a ``drjit.while_loop``: constants
+    gathered from ``cbuf`` (flat [N·12]), signal of ping i at packet row (i − b0)·n_up."""
+    import drjit as dr
+    width = dr.width(voxels[0])
+
+    def body(i, are, aim):
+        q = []
+        for j in range(3 if masked else 2):
+            q.extend(dr.gather(m.Array4f, cbuf, i * 3 + j))
+        u, mask = _ping(m, voxels, q, masked)
+        re, im = interp.tent_gather_jit(m, buf, (i - b0) * n_up, u, n_up, interpolation, mask)
+        return i + 1, are + re, aim + im
+
+    i0 = p0 + dr.zeros(m.UInt32, width)
+    _, are, aim = dr.while_loop((i0, acc[0], acc[1]), lambda i, are, aim: i < p1, body)
+    return are, aim
+
+
+def brick_order(shape, brick=BRICK) -> np.ndarray:
+    """Flat C-order voxel indices [nx·ny·nz] int64 of a grid ``shape`` in lane order: bricks
+    of ``brick`` voxels (x-major over bricks, then x-major inside a brick); ``None`` = C order."""
+    shape = tuple(int(n) for n in shape)
+    if brick is None:
+        return np.arange(int(np.prod(shape, dtype=np.int64)), dtype=np.int64)
+    b = [min(int(k), n) for k, n in zip(brick, shape)]
+    nb = [-(-n // k) for n, k in zip(shape, b)]
+
+    def axis(a):  # voxel index along axis a, broadcast over (bx, by, bz, ox, oy, oz)
+        sh = [1] * 6
+        sh[a], sh[a + 3] = nb[a], 1
+        outer = (np.arange(nb[a], dtype=np.int64) * b[a]).reshape(sh)
+        sh = [1] * 6
+        sh[a + 3] = b[a]
+        return outer + np.arange(b[a], dtype=np.int64).reshape(sh)
+
+    ix, iy, iz = axis(0), axis(1), axis(2)
+    flat = (ix * shape[1] + iy) * shape[2] + iz
+    valid = (ix < shape[0]) & (iy < shape[1]) & (iz < shape[2])
+    flat, valid = np.broadcast_arrays(flat, valid)
+    return flat[valid]
+
+
+def _backend_is_cuda(m) -> bool:
+    return m.__name__.startswith("drjit.cuda")
 
 
 def solve(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linear",
@@ -147,8 +208,10 @@ def solve(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linea
 
 def backproject(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linear",
                 incoherent: bool = False, tx_beam_mask: float | None = None,
-                per_ping_sound_speed: bool = True, progress: bool = True) -> np.ndarray:
-    """Backprojected complex volume [nx, ny, nz] complex64 (see :func:`solve`)."""
+                per_ping_sound_speed: bool = True, progress: bool = True,
+                loop: str = "auto", brick=BRICK) -> np.ndarray:
+    """Backprojected complex volume [nx, ny, nz] complex64 (see :func:`solve`; ``loop`` and
+    ``brick``: the kernel form and lane order of :func:`delay_and_sum`)."""
     _validate(grid, upsample, interpolation, tx_beam_mask)
     measurements.check_dataset(dataset)
     upsample = int(upsample)
@@ -161,38 +224,47 @@ def backproject(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = 
             yield upsampled_signals(dataset, pings, upsample, incoherent)
 
     return delay_and_sum(blocks(), consts, grid, n_t * upsample, interpolation=interpolation,
-                         masked=tx_beam_mask is not None, progress=progress)
+                         masked=tx_beam_mask is not None, progress=progress, loop=loop,
+                         brick=brick)
 
 
 def interpolation_buffer(s: np.ndarray) -> np.ndarray:
-    """Buffer [n, T, 4] float32 (Re s[k], Im s[k], Re s[k+1], Im s[k+1]) of signals s [n, T]."""
-    s = np.asarray(s, dtype=np.complex64)
-    pairs = np.ascontiguousarray(s).view(np.float32).reshape(s.shape + (2,))
-    buf = np.empty(s.shape + (4,), dtype=np.float32)
-    buf[..., 0:2] = pairs
-    buf[:, :-1, 2:4] = pairs[:, 1:]
-    buf[:, -1, 2:4] = 0.0
-    return buf
+    """Packed buffer [n, T, 4] float32 of signals s [n, T] (:func:`recon.interp.packed_buffer`)."""
+    return interp.packed_buffer(s)
 
 
 def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
                   interpolation: str = "linear", masked: bool = False,
-                  progress: bool = False) -> np.ndarray:
-    """The Dr.Jit delay-and-sum loop: ``blocks`` yields interpolation buffers [n_b, n_up, 4]
+                  progress: bool = False, loop: str = "auto", brick=BRICK) -> np.ndarray:
+    """The fused Dr.Jit delay-and-sum: ``blocks`` yields interpolation buffers [n_b, n_up, 4]
     (see :func:`interpolation_buffer`) of consecutive pings, ``consts`` [N, 12] their
-    :func:`ping_constants`. Returns the complex volume [nx, ny, nz] complex64."""
+    :func:`ping_constants`. ``loop``: 'unrolled', 'symbolic' or 'auto' (unrolled on the CPU,
+    symbolic on CUDA; see the module docstring); ``brick``: lane order (:func:`brick_order`).
+    Returns the complex volume [nx, ny, nz] complex64."""
     import drjit as dr
     m = jit()
+    if loop not in LOOPS:
+        raise InputError(f"loop: choose one of {', '.join(LOOPS)}, got {loop!r}")
+    if loop == "auto":
+        loop = "symbolic" if _backend_is_cuda(m) else "unrolled"
+    consts = np.ascontiguousarray(consts, dtype=np.float32)
     n_pings = len(consts)
+    order = brick_order(grid.shape, brick)
+    axes = [np.asarray(a, dtype=np.float64) for a in grid.axes()]
     chunks = []
     for v0 in range(0, grid.size, MAX_VOXELS_PER_LAUNCH):
-        p = grid.points_range(v0, v0 + MAX_VOXELS_PER_LAUNCH).astype(np.float32)
-        chunks.append(([m.Float(p[:, j]) for j in range(3)],
-                       [dr.zeros(m.Float, len(p)), dr.zeros(m.Float, len(p))]))
-    # A padding ping never contributes: scale 0, offset -1 -> u = -1 is outside the window.
-    pad_ping = np.zeros(12, dtype=np.float32)
-    pad_ping[7], pad_ping[11] = -1.0, -2.0
+        ix, iy, iz = np.unravel_index(order[v0:v0 + MAX_VOXELS_PER_LAUNCH], grid.shape)
+        voxels = [m.Float(np.ascontiguousarray(a[i], dtype=np.float32)) for a, i in zip(axes, (ix, iy, iz))]
+        chunks.append((voxels, [dr.zeros(m.Float, len(ix)), dr.zeros(m.Float, len(ix))]))
     n_up_o = dr.opaque(m.UInt32, n_up)  # opaque: a new window length must not recompile
+    if loop == "symbolic":
+        cbuf = m.Float(consts.ravel())
+        per_launch = PINGS_PER_BLOCK if _backend_is_cuda(m) else LOOP_PINGS_PER_LAUNCH
+    else:
+        per_launch = PINGS_PER_LAUNCH
+        # A padding ping never contributes: scale 0, offset -1 -> u = -1 is outside the window.
+        pad_ping = np.zeros(12, dtype=np.float32)
+        pad_ping[7], pad_ping[11] = -1.0, -2.0
     bar = progress_bar(n_pings, progress, unit="ping", desc="backprojection", leave=False)
     b0 = 0
     for host in blocks:
@@ -206,45 +278,65 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
         dr.sync_thread()
         buf = m.Float(np.ascontiguousarray(host, dtype=np.float32).reshape(-1))
         del host
-        for l0 in range(0, n_b, PINGS_PER_LAUNCH):
-            c = consts[b0 + l0:b0 + min(l0 + PINGS_PER_LAUNCH, n_b)]
-            if len(c) < PINGS_PER_LAUNCH:
-                c = np.concatenate([c, np.tile(pad_ping, (PINGS_PER_LAUNCH - len(c), 1))])
-            q = [[dr.opaque(m.Float, float(v)) for v in row] for row in c]
-            offset = dr.opaque(m.UInt32, l0)
+        for l0 in range(0, n_b, per_launch):
+            l1 = min(l0 + per_launch, n_b)
+            if loop == "symbolic":
+                args = (cbuf, dr.opaque(m.UInt32, b0 + l0), dr.opaque(m.UInt32, b0 + l1),
+                        dr.opaque(m.UInt32, b0), n_up_o)
+            else:
+                c = consts[b0 + l0:b0 + l1]
+                if len(c) < per_launch:
+                    c = np.concatenate([c, np.tile(pad_ping, (per_launch - len(c), 1))])
+                q = [[dr.opaque(m.Float, float(v)) for v in row] for row in c]
+                args = (q, dr.opaque(m.UInt32, l0) * n_up_o, n_up_o)
             for voxels, acc in chunks:
-                acc[:] = _kernel(m, voxels, acc, buf, q, offset, n_up_o, interpolation, masked)
+                if loop == "symbolic":
+                    acc[:] = _kernel_symbolic(m, voxels, acc, buf, *args, interpolation, masked)
+                else:
+                    acc[:] = _kernel_unrolled(m, voxels, acc, buf, *args, interpolation, masked)
                 dr.eval(acc)
-            bar.update(min(PINGS_PER_LAUNCH, n_b - l0))
+            bar.update(l1 - l0)
         del buf
         b0 += n_b
     bar.close()
-    re = np.concatenate([np.asarray(acc[0]) for _, acc in chunks])
-    im = np.concatenate([np.asarray(acc[1]) for _, acc in chunks])
-    return (re + 1j * im).astype(np.complex64).reshape(grid.shape)
+    out = np.empty(grid.size, dtype=np.complex64)
+    v0 = 0
+    for _, (are, aim) in chunks:
+        n = dr.width(are)
+        out[order[v0:v0 + n]] = np.asarray(are) + 1j * np.asarray(aim)
+        v0 += n
+    return out.reshape(grid.shape)
 
 
-def backproject_numpy(dataset, grid: Grid, *, upsample: int = 5, incoherent: bool = False,
+def backproject_numpy(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linear",
+                      incoherent: bool = False, tx_beam_mask: float | None = None,
                       per_ping_sound_speed: bool = True) -> np.ndarray:
-    """Straightforward vectorised NumPy delay-and-sum with linear interpolation (reference
-    implementation for tests and benchmarks; same conventions as :func:`backproject`)."""
+    """Straightforward vectorised NumPy delay-and-sum in float64 (one pass over all voxels per
+    ping; reference implementation for tests and benchmarks; same conventions and options as
+    :func:`backproject`, the tent rule of :func:`recon.interp.tent_gather`)."""
+    _validate(grid, upsample, interpolation, tx_beam_mask)
     measurements.check_dataset(dataset)
     n_pings, n_t = np.asarray(dataset.waveforms).shape
     n_up = n_t * upsample
-    consts = ping_constants(dataset, upsample, per_ping_sound_speed).astype(np.float64)
+    consts = ping_constants(dataset, upsample, per_ping_sound_speed, tx_beam_mask).astype(np.float64)
     pts = grid.points()
     acc = np.zeros(len(pts), dtype=np.complex128)
     for b0 in range(0, n_pings, PINGS_PER_BLOCK):
         pings = np.arange(b0, min(b0 + PINGS_PER_BLOCK, n_pings))
         buf = upsampled_signals(dataset, pings, upsample, incoherent)
-        sig = buf[..., 0] + 1j * buf[..., 1]
+        sig = buf[..., 0].astype(np.float64) + 1j * buf[..., 1]
         for j, i in enumerate(pings):
             q = consts[i]
-            path = np.linalg.norm(pts - q[0:3], axis=1) + np.linalg.norm(pts - q[3:6], axis=1)
-            u = path * q[6] + q[7]
-            ok = (u >= 0) & (u <= n_up - 1)
-            k = np.floor(u[ok]).astype(np.int64)
-            f = u[ok] - k
-            nxt = np.where(k + 1 < n_up, sig[j, np.minimum(k + 1, n_up - 1)], 0)
-            acc[ok] += (1 - f) * sig[j, k] + f * nxt
+            d1 = np.linalg.norm(pts - q[0:3], axis=1)
+            u = (d1 + np.linalg.norm(pts - q[3:6], axis=1)) * q[6] + q[7]
+            if interpolation == "nearest":
+                u = np.floor(u + 0.5)
+            if interpolation == "linear":
+                val = interp.tent_gather(sig[j], u)
+            else:
+                k, _, valid = interp.tent_nodes(u, n_up)
+                val = np.where(valid, sig[j, k], 0)
+            if tx_beam_mask is not None:
+                val = np.where((pts - q[0:3]) @ q[8:11] >= q[11] * d1, val, 0)
+            acc += val
     return acc.astype(np.complex64).reshape(grid.shape)
