@@ -321,3 +321,38 @@ def test_import_airsas_refuses_damaged_scans(small_scan, tmp_path, capsys, damag
                           "--no-progress"]) == 2
     assert message in one_line_error(capsys)
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- .partial files
+
+def _writer(path, ds, **kw):
+    from sonarsim.dataset import DatasetStreamWriter
+    return DatasetStreamWriter(path, n_samples=ds.n_samples, tx=ds.tx, rx=ds.rx,
+                               boresight=ds.boresight, pulse=ds.pulse, fs=ds.fs,
+                               sound_speed=ds.sound_speed, source=ds.source,
+                               start_sample=ds.start_sample, meta=ds.meta, **kw)
+
+
+def test_corrupted_partial_file_is_verified_before_resuming(point_ds, tmp_path, capsys):
+    out = tmp_path / "D.h5"
+    w = _writer(out, point_ds)
+    w.write(0, point_ds.waveforms[:20])           # an interrupted run: 20 of 24 pings
+    w.close()
+    partial = Path(str(out) + ".partial")
+    with h5py.File(partial, "r") as f:
+        offset = f["waveforms"].id.get_offset()
+    rng = np.random.default_rng(1)
+    with open(partial, "r+b") as f:               # 4 KiB of random bytes over the data
+        f.seek(offset + 4 * point_ds.n_samples * 3)
+        f.write(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    w = _writer(out, point_ds)
+    assert w.resumed
+    assert "fail their checksum" in capsys.readouterr().err
+    missing = w.missing_ranges(100)
+    rows = -(-4096 // (4 * point_ds.n_samples))    # rows the random bytes overwrote
+    assert missing == [(3, 3 + rows), (20, 24)]
+    for a, b in missing:
+        w.write(a, point_ds.waveforms[a:b])
+    w.finish()
+    result = SonarDataset.read(out)                # no NaN rows, the same data
+    assert np.array_equal(result.waveforms, point_ds.waveforms)

@@ -5,6 +5,8 @@ import contextlib
 import hashlib
 import json
 import os
+import sys
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,9 +61,13 @@ class DatasetStreamWriter:
 
     Data go to ``<path>.partial`` (root attribute ``complete = False``, which every reader
     refuses).  A boolean dataset ``stream/done`` [N] records the pings written so far; it
-    is set only after their data are flushed.  Reopening with ``resume=True`` continues
-    where an interrupted run stopped, provided every other field (geometry, pulse, fs, ...)
-    is the same as before (else FormatError naming the field).  :meth:`finish` checks that
+    is set only after their data and their CRC-32 (``stream/crc`` [N] uint32, over the
+    ping's waveform bytes and, if stored, its transients bytes) are flushed.  Reopening with
+    ``resume=True`` continues where an interrupted run stopped, provided every other field
+    (geometry, pulse, fs, ...) is the same as before (else FormatError naming the field);
+    it first verifies every written ping against its checksum, and a ping whose data were
+    damaged since (a disk error, a stray write) is marked missing and written again, with
+    a warning. A partial file that cannot be read at all is started over.  :meth:`finish` checks that
     every ping is written, removes the bookkeeping, sets ``complete = True`` and renames
     the file atomically to ``path``.  The result reads back equal to a one-shot
     :meth:`SonarDataset.write` of the same content.
@@ -141,6 +147,7 @@ class DatasetStreamWriter:
                 g.create_dataset("transients", dtype=np.float32, fillvalue=0, shape=(
                     self.n_pings, self.layout.n_bounces, self.layout.n_bins))
             f.create_dataset("stream/done", shape=(self.n_pings,), dtype=bool, fillvalue=False)
+            f.create_dataset("stream/crc", shape=(self.n_pings,), dtype=np.uint32, fillvalue=0)
             f["stream"].attrs["fingerprints"] = json.dumps(self._fingerprints())
             f.flush()
         except BaseException:
@@ -159,7 +166,8 @@ class DatasetStreamWriter:
         try:
             stored = json.loads(f["stream"].attrs["fingerprints"])
             done = f["stream/done"]
-            done_ok = done.shape == (self.n_pings,)
+            done_ok = done.shape == (self.n_pings,) and \
+                f["stream/crc"].shape == (self.n_pings,)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError):
             f.close()
             return None
@@ -171,8 +179,49 @@ class DatasetStreamWriter:
         if not done_ok:
             f.close()
             return None
+        try:
+            damaged = self._verify(f)
+        except (KeyError, OSError, RuntimeError, TypeError, ValueError):
+            f.close()
+            return None
+        if damaged:
+            print(f"warning: {label}: {damaged} written pings fail their checksum (the file "
+                  "was damaged); they are written again", file=sys.stderr)
         self.resumed = True
         return f
+
+    def _row_crcs(self, f: h5py.File, start: int, stop: int, waveforms=None,
+                  transients=None) -> np.ndarray:
+        """CRC-32 [stop - start] uint32 of each ping's waveform (+ transients) bytes."""
+        if waveforms is None:
+            waveforms = f["waveforms"][start:stop]
+            if self.layout is not None:
+                transients = f["transients/transients"][start:stop]
+        out = np.empty(stop - start, np.uint32)
+        for i in range(stop - start):
+            crc = zlib.crc32(np.ascontiguousarray(waveforms[i]).tobytes())
+            if transients is not None:
+                crc = zlib.crc32(np.ascontiguousarray(transients[i]).tobytes(), crc)
+            out[i] = crc
+        return out
+
+    def _verify(self, f: h5py.File) -> int:
+        """Mark every written ping whose data fail their checksum as missing; return how many."""
+        done = np.asarray(f["stream/done"][()], dtype=bool)
+        crc = np.asarray(f["stream/crc"][()], dtype=np.uint32)
+        row_bytes = self.n_samples * 4 + (0 if self.layout is None else
+                                          self.layout.n_bounces * self.layout.n_bins * 4)
+        step = max(1, (64 << 20) // max(1, row_bytes))
+        bad = np.zeros(self.n_pings, dtype=bool)
+        for a in range(0, self.n_pings, step):
+            b = min(self.n_pings, a + step)
+            if done[a:b].any():
+                bad[a:b] = done[a:b] & (self._row_crcs(f, a, b) != crc[a:b])
+        if bad.any():
+            done &= ~bad
+            f["stream/done"][...] = done
+            f.flush()
+        return int(bad.sum())
 
     # ---- progress
     @property
@@ -224,11 +273,13 @@ class DatasetStreamWriter:
         if (self.layout is None) != (transients is None):
             raise InputError("transients must be given exactly when the writer has a "
                              "transients layout")
+        tr = None
         if transients is not None:
             dims.update(B=(self.layout.n_bounces, "layout"), K=(self.layout.n_bins, "layout"))
             tr = as_array("transients", transients, ("n", "B", "K"), np.float32, dims)
             f["transients/transients"][start:stop] = tr
         f["waveforms"][start:stop] = wf
+        f["stream/crc"][start:stop] = self._row_crcs(f, start, stop, wf, tr)
         for name, values in (stats or {}).items():
             values = np.asarray(values, np.float64).reshape(-1)
             if values.shape != (stop - start,):
@@ -237,7 +288,7 @@ class DatasetStreamWriter:
             if key not in f:
                 f.create_dataset(key, shape=(self.n_pings,), dtype=np.float64, fillvalue=0)
             f[key][start:stop] = values
-        f.flush()  # data on disk before the pings are marked done
+        f.flush()  # data and checksums on disk before the pings are marked done
         f["stream/done"][start:stop] = True
         f.flush()
 
