@@ -295,7 +295,7 @@ def write_figures(out: Path, rows, means, methods, scenes: dict[str, dict]) -> l
                             squeeze=False, constrained_layout=True)
     crop_box = np.array([[-1e3, 1e3], [-1e3, 1e3], [CROP_Z, 1e3]])
     for i, (scene, info) in enumerate(scenes.items()):
-        axs[i, 0].imshow(views.render(info["gt"], cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
+        axs[i, 0].imshow(views.render_views(info["gt"], cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
         axs[i, 0].set_title(f"{scene}: GT", fontsize=8)
         for j, m in enumerate(methods):
             r = next(r for r in rows if r["scene"] == scene and r["method"] == m.key)
@@ -309,7 +309,7 @@ def write_figures(out: Path, rows, means, methods, scenes: dict[str, dict]) -> l
             ax.set_title(f"{m.label}: MIP over y", fontsize=8)
             mesh = export.mesh_from_volume(v, b, THRESHOLD)
             ax = axs[i, 2 + 2 * j]
-            ax.imshow(views.render(mesh, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
+            ax.imshow(views.render_views(mesh, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
             ax.set_title(f"τ={THRESHOLD}: IoU {fmt(r['iou'], '.3f')}, "
                          f"C² {fmt(r['chamfer_sq'], '.1e')}", fontsize=8)
     for ax in axs.ravel():

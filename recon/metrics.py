@@ -1,6 +1,8 @@
 """Geometric quality of a reconstructed volume against a ground-truth mesh.
 
-Metrics (REFERENCE_SPEC §7.1; choices documented in docs/evaluation.md):
+Metrics (after the reference code's ``evaluate/`` scripts; choices documented in
+docs/evaluation.md). Two protocols: :func:`evaluate` (exact, the default) and
+:func:`evaluate_reference` (the reference's definitions, at the end of this module).
 
 * **Occupancy IoU** on a grid of ``cell`` (5 mm) cells over the volume's box
   ``[lo, hi]``: a cell of the prediction is occupied when a voxel centre with
@@ -346,3 +348,139 @@ def evaluate(volume: np.ndarray, bounds, gt_mesh: trimesh.Trimesh, *,
             result[f"best_{key}_threshold"] = b["threshold"]
         result["sweep"] = rows
     return result
+
+
+# ------------------------------------------------------------ the reference's protocol
+
+REFERENCE_IOU_BOUNDS = np.array([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]])   # 80 x 80 x 60 cells
+N_VOLUME_SAMPLES = 50_000
+
+
+def inside_mesh_points(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """bool [K]: ``points`` [K, 3] inside ``mesh`` (majority vote of the ray-crossing parity
+    along x, y and z, as :func:`inside_mesh_lattice`, for arbitrary points)."""
+    pts = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    votes = sum(_points_axis_parity(tri, pts, a).astype(np.int8) for a in range(3))
+    return votes >= 2
+
+
+def _points_axis_parity(tri: np.ndarray, pts: np.ndarray, axis: int) -> np.ndarray:
+    """bool [K]: odd number of surface crossings below each point along ``axis``."""
+    b, c = [a for a in range(3) if a != axis]
+    order = np.argsort(pts[:, b], kind="stable")
+    bs = pts[order, b]
+    pb, pc = tri[:, :, b], tri[:, :, c]
+    i0 = np.searchsorted(bs, pb.min(1), "left")
+    counts = np.searchsorted(bs, pb.max(1), "right") - i0
+    crossings = np.zeros(len(pts), dtype=np.int64)
+    keep = np.nonzero(counts)[0]
+    start, chunk = 0, 2_000_000
+    while start < len(keep):  # bounded memory: triangles in groups of ~chunk candidate pairs
+        csum = np.cumsum(counts[keep[start:]])
+        stop = start + max(1, int(np.searchsorted(csum, chunk, "right")))
+        ids = keep[start:stop]
+        start = stop
+        cnt = counts[ids]
+        t = np.repeat(ids, cnt)
+        j = order[i0[t] + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+        qb, qc = pts[j, b], pts[j, c]
+        xb, xc = pb[t], pc[t]
+        d = (xb[:, 1] - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
+        w1 = (qb - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (qc - xc[:, 0])
+        w2 = (xb[:, 1] - xb[:, 0]) * (qc - xc[:, 0]) - (qb - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w1, w2 = w1 / d, w2 / d
+            w0 = 1.0 - w1 - w2
+        hit = (np.abs(d) > 0) & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+        za = tri[t[hit], :, axis]
+        z = za[:, 0] * w0[hit] + za[:, 1] * w1[hit] + za[:, 2] * w2[hit]
+        below = z < pts[j[hit], axis]
+        np.add.at(crossings, j[hit][below], 1)
+    return crossings % 2 == 1
+
+
+def volume_samples(mesh: trimesh.Trimesh, count: int, seed: int) -> np.ndarray:
+    """The reference's GT volume samples (``trimesh.sample.volume_mesh``): ``count`` uniform
+    points in the mesh's bounding box (seeded), of which those inside the mesh are returned
+    ([≈ count·V/V_box, 3]). Containment by :func:`inside_mesh_points` (trimesh's own needs
+    rtree and is very slow on the open bunny mesh)."""
+    lo, hi = np.asarray(mesh.bounds[0], float), np.asarray(mesh.bounds[1], float)
+    pts = lo + np.random.default_rng(seed).random((int(count), 3)) * (hi - lo)
+    return pts[inside_mesh_points(mesh, pts)]
+
+
+def reference_mesh(magnitude: np.ndarray, bounds, threshold: float) -> trimesh.Trimesh:
+    """The reference's ``mesh_smooth``: binarise ``magnitude > threshold``, pad by one voxel,
+    PyMCubes' ``smooth`` (constrained smoothing of the 0.5 level set), marching cubes at level 0.
+
+    Vertices are mapped to world metres with the voxel-centre convention (padding removed,
+    spacing (hi − lo)/(n − 1)); the reference does not remove the padding and divides by n
+    (docs/evaluation.md). An empty binary volume gives an empty mesh.
+    """
+    import mcubes
+    t = export.check_threshold(threshold)
+    binary = np.asarray(magnitude) > t
+    if not binary.any():
+        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    smooth = mcubes.smooth(np.pad(binary, 1).astype(np.float64))
+    verts, faces = mcubes.marching_cubes(smooth, 0.0)
+    spacing = export.voxel_spacing(bounds, binary.shape)
+    lo = np.asarray(bounds, dtype=np.float64)[:, 0]
+    world = lo + (np.asarray(verts, dtype=np.float64) - 1.0) * spacing
+    return trimesh.Trimesh(world, np.asarray(faces, dtype=np.int64), process=False)
+
+
+def evaluate_reference(volume: np.ndarray, bounds, gt_mesh: trimesh.Trimesh, *,
+                       threshold: float = export.DEFAULT_THRESHOLD, seed: int = 0,
+                       n_volume: int = N_VOLUME_SAMPLES, n_surface: int = N_SURFACE_SAMPLES,
+                       sweep: tuple[float, ...] | None = DEFAULT_SWEEP, crop=None) -> dict:
+    """Geometric metrics by the reference's definitions (docs/evaluation.md, "Protocols").
+
+    * ``iou``: GT = ``n_volume`` volume samples of the mesh (:func:`volume_samples`),
+      prediction = voxel centres with min–max-normalised magnitude > τ, both voxelised on the
+      fixed 80 × 80 × 60 grid of 5 mm cells over [−0.2, 0.2]² × [0, 0.3] m (points outside
+      are dropped, as Open3D's ``create_from_point_cloud_within_bounds``).
+    * ``chamfer_sq``: pytorch3d's default Chamfer (squared, mean each way, summed) between
+      ``n_surface`` GT surface samples and ``n_surface`` samples of :func:`reference_mesh`
+      (the reference's ``mesh_cham``); ``chamfer_m`` the unsquared mean, for reading.
+    * ``mesh_iou``: the same IoU with the mesh samples as prediction.
+    With ``sweep``, ``best_iou`` / ``best_iou_threshold`` over the sweep (the IoU needs no
+    mesh; a mesh per threshold would cost a constrained smoothing each).
+    ``crop`` [3, 2]: as :func:`evaluate` (drop voxels outside before normalising).
+    Returns (metrics dict, the ``mesh_smooth`` at τ, for the image metrics).
+    """
+    t = export.check_threshold(threshold)
+    if crop is not None:
+        volume, bounds = export.crop_volume(volume, bounds, np.asarray(crop, dtype=np.float64))
+    mag = export.normalized_magnitude(volume)
+    bounds = export.check_bounds(bounds, mag.shape)
+    cells = CellGrid(REFERENCE_IOU_BOUNDS[:, 0], REFERENCE_IOU_BOUNDS[:, 1], IOU_CELL)
+    gt_vol = volume_samples(gt_mesh, n_volume, seed)
+    gt_occ = cells.occupancy(gt_vol)
+    gt_surf, _ = surface_samples(gt_mesh, n_surface, seed)
+
+    def voxel_iou(tau):
+        return iou(cells.occupancy(export.occupied_points(mag, bounds, tau)), gt_occ)
+
+    mesh = reference_mesh(mag, bounds, t)
+    surf, _ = surface_samples(mesh, n_surface, seed + 1)
+    cm = chamfer(gt_surf, surf)
+    pts = export.occupied_points(mag, bounds, t)
+    result = {"protocol": "reference", "threshold": t, "iou": voxel_iou(t),
+              "mesh_iou": iou(cells.occupancy(surf), gt_occ) if len(surf) else 0.0,
+              "chamfer_sq": cm["sq"], "chamfer_m": cm["m"],
+              "completeness_m": cm["a_to_b_m"], "accuracy_m": cm["b_to_a_m"],
+              "occupied_voxels": int(len(pts)), "gt_volume_samples": int(len(gt_vol)),
+              "gt_cells": int(gt_occ.sum()), "mesh_faces": int(len(mesh.faces)),
+              "empty": bool(len(pts) == 0), "n_volume": int(n_volume),
+              "n_samples": int(n_surface), "seed": int(seed), "normalization": "minmax",
+              "iou_cell_m": IOU_CELL, "iou_bounds": REFERENCE_IOU_BOUNDS.tolist(),
+              "evaluated_bounds": np.asarray(bounds).tolist()}
+    if sweep:
+        rows = [{"threshold": float(s), "iou": voxel_iou(float(s))}
+                for s in sorted(set(float(s) for s in sweep) | {t})]
+        best = max(rows, key=lambda r: r["iou"])
+        result.update({"best_iou": best["iou"], "best_iou_threshold": best["threshold"],
+                       "sweep": rows})
+    return result, mesh

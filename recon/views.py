@@ -1,6 +1,6 @@
 """Depth and shaded renders of meshes around a turntable, and image metrics (PSNR, SSIM).
 
-The reference renders with pyrender (OpenGL, REFERENCE_SPEC §7.1); here a pinhole
+The reference renders with pyrender (OpenGL; reference code ``evaluate/``); here a pinhole
 camera grid is ray cast with Mitsuba's ``scene.ray_intersect`` on the CPU variant, so no
 OpenGL or RGB variant is needed.
 
@@ -13,7 +13,9 @@ OpenGL or RGB variant is needed.
 * ``shaded``: ``|n · v|`` headlight Lambert shading in [0, 1] (v = view ray), 0 for the
   background.
 * PSNR over the whole stack of views (one MSE), SSIM averaged over views, both with
-  data range 1 (scikit-image).
+  data range 1 (scikit-image; optionally with torchmetrics' Gaussian window, as the reference).
+* LPIPS (the reference's VGG LPIPS) is not computed: it needs PyTorch and VGG weights
+  downloaded at run time (docs/evaluation.md).
 """
 from __future__ import annotations
 
@@ -55,8 +57,9 @@ class Turntable:
         return o.reshape(-1, 3), d.reshape(-1, 3), forward
 
 
-def render(mesh: trimesh.Trimesh, cams: Turntable = Turntable()) -> dict[str, np.ndarray]:
-    """``{'depth': [V, H, W] float32 (m), 'shaded': [V, H, W] float32 in [0, 1]}``."""
+def render_views(mesh: trimesh.Trimesh, cams: Turntable = Turntable()) -> dict[str, np.ndarray]:
+    """Ray-cast depth and headlight-shaded images of ``mesh`` from every camera of ``cams``:
+    ``{'depth': [V, H, W] float32 (m), 'shaded': [V, H, W] float32 in [0, 1]}``."""
     shape = (cams.n_views, cams.resolution, cams.resolution)
     if len(mesh.faces) == 0:
         return {"depth": np.zeros(shape, np.float32), "shaded": np.zeros(shape, np.float32)}
@@ -93,21 +96,36 @@ def psnr(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0) -> fl
     return float("inf") if mse == 0 else float(10 * np.log10(data_range ** 2 / mse))
 
 
-def ssim(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0) -> float:
-    """Mean SSIM over the views of [V, H, W] stacks (scikit-image, 7x7 window)."""
+def ssim(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0,
+         gaussian: bool = False) -> float:
+    """Mean SSIM over the views of [V, H, W] stacks (scikit-image).
+
+    ``gaussian=False``: 7x7 uniform window (scikit-image's default); ``True``: 11x11
+    Gaussian window of sigma 1.5 with population statistics, torchmetrics' default (the
+    reference's image metrics, ``main_image_space_loss.py``).
+    """
     from skimage.metrics import structural_similarity
-    return float(np.mean([structural_similarity(r, t, data_range=data_range)
+    opts = ({"gaussian_weights": True, "sigma": 1.5, "use_sample_covariance": False}
+            if gaussian else {})
+    return float(np.mean([structural_similarity(r, t, data_range=data_range, **opts)
                           for r, t in zip(np.asarray(reference, np.float64),
                                           np.asarray(test, np.float64))]))
 
 
+REFERENCE_VIEWS = Turntable(n_views=10, distance=0.3, height=0.1, fov_deg=60.0, resolution=512)
+
+
 def image_metrics(gt_mesh: trimesh.Trimesh, mesh: trimesh.Trimesh,
-                  cams: Turntable = Turntable()) -> dict:
-    """PSNR and SSIM of depth and shaded renders of ``mesh`` against ``gt_mesh``."""
-    ref, test = render(gt_mesh, cams), render(mesh, cams)
+                  cams: Turntable = Turntable(), gaussian_ssim: bool = False) -> dict:
+    """PSNR and SSIM of depth and shaded renders of ``mesh`` against ``gt_mesh``.
+
+    The reference's protocol uses ``cams=REFERENCE_VIEWS`` (its 10 views at 512²) and
+    ``gaussian_ssim=True`` (torchmetrics' SSIM window).
+    """
+    ref, test = render_views(gt_mesh, cams), render_views(mesh, cams)
     out = {}
     for kind in ("depth", "shaded"):
         r, t = np.clip(ref[kind], 0, 1), np.clip(test[kind], 0, 1)
         out[f"psnr_{kind}"] = psnr(r, t)
-        out[f"ssim_{kind}"] = ssim(r, t)
+        out[f"ssim_{kind}"] = ssim(r, t, gaussian=gaussian_ssim)
     return out

@@ -106,14 +106,19 @@ def test_volume_of_the_gt_itself_scores_perfectly_and_a_shift_costs_the_closed_f
     assert shifted["normal_consistency"] < perfect["normal_consistency"] - 0.1
 
 
-def test_binary_voxelisation_of_a_mesh_scores_high():
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.04)
+def test_binary_voxelisation_of_a_ball_scores_high():
+    """The prediction is the *analytic* ball r < R on the lattice (independent of the mesh
+    containment that makes the GT): a fine icosphere deviates < 0.03 mm from the ball, so the
+    5 mm cells must agree (a broken containment or cell assignment fails this)."""
+    radius = 0.04
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)
     bounds = np.array([[-0.1, 0.1], [-0.1, 0.1], [-0.06, 0.06]])
     shape = (63, 63, 38)
-    inside = metrics.inside_mesh_lattice(sphere, export.voxel_axes(bounds, shape))
-    res = metrics.evaluate(inside.astype(np.complex64), bounds, sphere, threshold=0.2,
-                           sweep=None, n_samples=5000)
-    assert res["iou"] == 1.0  # same lattice, same 5 mm cells
+    x, y, z = np.meshgrid(*export.voxel_axes(bounds, shape), indexing="ij")
+    ball = (x * x + y * y + z * z < radius ** 2).astype(np.complex64)
+    res = metrics.evaluate(ball, bounds, sphere, threshold=0.2, sweep=None, n_samples=5000)
+    assert res["iou"] >= 0.99
+    assert res["gt_cells"] == pytest.approx(res["occupied_cells"], abs=2)
     assert res["chamfer_m"] < export.voxel_spacing(bounds, shape).max()
 
 
@@ -158,7 +163,7 @@ def test_depth_render_of_a_sphere_matches_ray_sphere_intersection(mi):
     centre, radius = np.array([0.0, 0.0, 0.1]), 0.05
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)
     sphere.apply_translation(centre)
-    out = views.render(sphere, cams)
+    out = views.render_views(sphere, cams)
     o, d, forward = cams.rays()
     oc = o - centre
     b = np.sum(oc * d, axis=1)
@@ -231,3 +236,97 @@ def test_crop_leaves_out_a_ground_slab():
     assert sub.shape == (N, N, N - 4) and b[2, 0] == pytest.approx(-0.09)
     with pytest.raises(InputError):
         export.crop_volume(vol, BOX, [[0.2, 0.3], [-0.1, 0.1], [-0.1, 0.1]])
+
+
+# ------------------------------------------------------------- the reference's protocol
+
+def test_inside_mesh_points_matches_the_ball_and_survives_a_hole():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    pts = np.random.default_rng(3).uniform(-0.07, 0.07, (4000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = np.abs(r - 0.05) > 0.002
+    assert np.array_equal(metrics.inside_mesh_points(sphere, pts)[clear], (r < 0.05)[clear])
+    holed = sphere.copy()
+    holed.update_faces(holed.face_normals[:, 2] < 0.97)
+    assert np.array_equal(metrics.inside_mesh_points(holed, pts)[clear], (r < 0.05)[clear])
+
+
+def test_volume_samples_are_rejection_samples_of_the_bounding_box():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    pts = metrics.volume_samples(sphere, 20_000, seed=1)
+    assert np.linalg.norm(pts, axis=1).max() < 0.05
+    # binomial: 20 000 tries, p = V/V_box = π/6 -> std 0.0035
+    assert len(pts) / 20_000 == pytest.approx(sphere.volume / 0.1 ** 3, abs=0.015)
+    assert np.array_equal(pts, metrics.volume_samples(sphere, 20_000, seed=1))
+
+
+def test_reference_mesh_is_the_smoothed_binary_surface_in_world_coordinates():
+    bounds = np.array([[-0.1, 0.1]] * 3)
+    shape = (81, 81, 81)                           # 2.5 mm voxels
+    x, y, z = np.meshgrid(*export.voxel_axes(bounds, shape), indexing="ij")
+    centre = np.array([0.012, -0.02, 0.007])
+    r = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2)
+    mesh = metrics.reference_mesh((r < 0.05).astype(np.float32), bounds, 0.2)
+    dist = np.linalg.norm(mesh.vertices - centre, axis=1)
+    assert np.abs(mesh.vertices.mean(axis=0) - centre).max() < 0.2 * 0.0025   # centred
+    assert abs(dist.mean() - 0.05) < 0.5 * 0.0025                            # radius
+    assert dist.std() < 0.0025
+    assert metrics.reference_mesh(np.zeros((5, 5, 5)), bounds, 0.2).faces.shape[0] == 0
+
+
+def test_reference_protocol_iou_ceiling_and_shifted_cube_chamfer():
+    """A perfect reconstruction scores the reference's sampling ceiling: n volume samples in
+    the mesh's box (volume S³) occupy cell c with probability p_c = 1 − exp(−n·|c ∩ cube|/S³),
+    so E[IoU] = Σ_{c∈P} p_c / (|P| + Σ_{c∉P} p_c), P the cells of the predicted voxels;
+    and the squared Chamfer of a shifted cube is the closed form."""
+    gt = cube_mesh()
+    n = 2000
+    cells = metrics.CellGrid(*metrics.REFERENCE_IOU_BOUNDS.T, 0.005)
+    overlap = []
+    for a in range(3):
+        edges = metrics.REFERENCE_IOU_BOUNDS[a, 0] + 0.005 * np.arange(cells.shape[a] + 1)
+        overlap.append(np.clip(np.minimum(edges[1:], CUBE_LO + S)
+                               - np.maximum(edges[:-1], CUBE_LO), 0, None))
+    pred = cells.occupancy(export.occupied_points(np.abs(cube_volume()), BOX, 0.5))
+
+    def expected(n):
+        p = 1 - np.exp(-n * np.einsum("i,j,k->ijk", *overlap) / S ** 3)
+        return p[pred].sum() / (pred.sum() + p[~pred].sum())
+    res, mesh = metrics.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, n_volume=n,
+                                           sweep=None)
+    assert res["iou"] == pytest.approx(expected(n), abs=0.03)        # 0.77
+    assert res["iou_bounds"] == [[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]]
+    # the cube lies partly below z = 0: cells there are outside the fixed IoU grid for both
+    assert res["gt_cells"] < 1000
+    full, _ = metrics.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, sweep=None)
+    assert full["iou"] == pytest.approx(expected(50_000), abs=0.02)   # 0.83: partial cells
+    assert full["chamfer_sq"] < 1e-5
+    shifted, _ = metrics.evaluate_reference(cube_volume(D), BOX, gt, threshold=0.5,
+                                            sweep=(0.3, 0.5))
+    expected_sq, _ = shifted_cube_chamfer(S, D)
+    assert shifted["chamfer_sq"] == pytest.approx(expected_sq, rel=0.15)
+    assert shifted["best_iou_threshold"] in (0.3, 0.5)
+    assert len(mesh.faces) > 0
+
+
+def test_cli_evaluate_reference_protocol(tmp_path, capsys, mi):
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+
+    gt = tmp_path / "cube.ply"
+    cube_mesh().apply_translation([0, 0, 0.05]).export(gt)
+    vol = Volume(cube_volume(), BOX + [[0, 0], [0, 0], [0.05, 0.05]], "test")
+    vol.write(tmp_path / "v.h5")
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--json", "--threshold",
+                 "0.5", "--protocol", "reference", "--no-sweep"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["protocol"] == "reference" and res["n_volume"] == 50_000
+    api, _ = metrics.evaluate_reference(vol.volume, vol.bounds, metrics.load_gt_mesh(gt),
+                                        threshold=0.5, sweep=None)
+    assert res["iou"] == api["iou"] > 0.7 and res["chamfer_sq"] == api["chamfer_sq"] < 1e-5
+    assert res["psnr_depth"] > 25 and 0.9 < res["ssim_depth"] <= 1.0
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--protocol",
+                 "reference", "--normalize", "max"]) == 2
+    with pytest.raises(SystemExit) as exc:
+        main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--protocol", "nope"])
+    assert exc.value.code == 2

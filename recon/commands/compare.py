@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--view must lie in 0..{cams.n_views - 1}, got {args.view}")
     threshold = export.check_threshold(args.threshold)
     gt = metrics.load_gt_mesh(args.gt)
-    gt_render = views.render(gt, cams)["shaded"][args.view]
+    gt_render = views.render_views(gt, cams)["shaded"][args.view]
     rows = []
     for path in args.volumes:
         vol = Volume.read(path)
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         mag = export.normalized_magnitude(volume, args.normalize)
         res = evaluate_file(path, gt, threshold=threshold, normalize=args.normalize,
                             sweep=False, images=True, crop=args.crop)
-        shaded = views.render(export.extract_surface(mag, bounds, threshold), cams)
+        shaded = views.render_views(export.extract_surface(mag, bounds, threshold), cams)
         rows.append((path, vol.method, bounds, mag, res, shaded["shaded"][args.view]))
 
     fig, axs = plt.subplots(len(rows) + 1, 4, figsize=(15, 3.4 * (len(rows) + 1)),

@@ -13,6 +13,7 @@ from sonarsim.dataset import Volume
 from .. import export, metrics
 
 HELP = "Evaluate a volume against a ground-truth mesh (IoU, Chamfer, PSNR/SSIM, threshold sweep)."
+PROTOCOLS = ("exact", "reference")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,23 +34,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--with-sweep-rows", action="store_true",
                         help="include every sweep row in the JSON output")
+    parser.add_argument("--protocol", choices=PROTOCOLS, default="exact",
+                        help="exact (default): containment-test GT on the volume's own lattice, "
+                             "sub-voxel iso-surface; reference: the reference's definitions "
+                             "(50 000 GT volume samples, fixed 80x80x60 IoU grid, binarised + "
+                             "smoothed mesh, its 10 views); see docs/evaluation.md")
+    parser.add_argument("--volume-samples", type=int, default=metrics.N_VOLUME_SAMPLES,
+                        help="GT volume samples of the reference protocol (default 50000)")
 
 
 def evaluate_file(path: Path, gt_mesh, *, threshold: float, normalize: str = "minmax",
                   sweep: bool = True, images: bool = True, samples: int =
-                  metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None) -> dict:
-    """All metrics of one volume file (see :func:`recon.metrics.evaluate`).
+                  metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None,
+                  protocol: str = "exact", volume_samples: int = metrics.N_VOLUME_SAMPLES
+                  ) -> dict:
+    """All metrics of one volume file (see :func:`recon.metrics.evaluate`, or
+    :func:`recon.metrics.evaluate_reference` with ``protocol='reference'``).
 
     ``crop``: six numbers x0 x1 y0 y1 z0 z1 (m) or None. Image metrics render the
     (cropped) reconstruction against the whole GT mesh.
     """
+    from sonarsim.errors import InputError
     export.check_threshold(threshold)
+    if protocol not in PROTOCOLS:
+        raise InputError(f"protocol: choose one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+    for name, n in (("--samples", samples), ("--volume-samples", volume_samples)):
+        if int(n) < 1:
+            raise InputError(f"{name}: must be >= 1, got {n}")
     vol = Volume.read(path)
     box = None if crop is None else np.asarray(crop, dtype=np.float64).reshape(3, 2)
+    if protocol == "reference":
+        if normalize != "minmax":
+            raise InputError("--protocol reference normalises min-max (as the reference); "
+                             "drop --normalize")
+        result, mesh = metrics.evaluate_reference(
+            vol.volume, vol.bounds, gt_mesh, threshold=threshold, seed=seed,
+            n_volume=volume_samples, n_surface=samples,
+            sweep=metrics.DEFAULT_SWEEP if sweep else None, crop=box)
+        result = {"volume": str(path), "method": vol.method, **result}
+        if images:
+            from .. import views
+            result.update(views.image_metrics(gt_mesh, mesh, views.REFERENCE_VIEWS,
+                                              gaussian_ssim=True))
+        return result
     result = metrics.evaluate(vol.volume, vol.bounds, gt_mesh, threshold=threshold,
                               sweep=metrics.DEFAULT_SWEEP if sweep else None,
                               normalization=normalize, n_samples=samples, seed=seed, crop=box)
-    result = {"volume": str(path), "method": vol.method, **result}
+    result = {"volume": str(path), "method": vol.method, "protocol": "exact", **result}
     if images:
         from .. import views
         volume, bounds = vol.volume, vol.bounds
@@ -82,7 +113,8 @@ def _fmt(value, unit: str = "") -> str:
     return f"{value}{unit}"
 
 
-ROWS = [("iou", "IoU (5 mm cells)", ""), ("chamfer_sq", "Chamfer, squared (ref.)", " m²"),
+ROWS = [("iou", "IoU (5 mm cells)", ""), ("mesh_iou", "IoU of the mesh samples", ""),
+        ("chamfer_sq", "Chamfer, squared (ref.)", " m²"),
         ("chamfer_m", "Chamfer, mean L2", " m"), ("accuracy_m", "  pred -> GT", " m"),
         ("completeness_m", "  GT -> pred", " m"),
         ("chamfer_vox_sq", "Chamfer vs voxels, sq.", " m²"),
@@ -92,8 +124,8 @@ ROWS = [("iou", "IoU (5 mm cells)", ""), ("chamfer_sq", "Chamfer, squared (ref.)
 
 
 def format_table(result: dict) -> list[str]:
-    lines = [f"{result['volume']} ({result['method']}), threshold {result['threshold']:g}, "
-             f"normalisation {result['normalization']}"]
+    lines = [f"{result['volume']} ({result['method']}), {result['protocol']} protocol, "
+             f"threshold {result['threshold']:g}, normalisation {result['normalization']}"]
     if result["empty"]:
         lines.append("  reconstruction is empty at this threshold: no voxel above it")
     for key, label, unit in ROWS:
@@ -112,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
     result = evaluate_file(args.volume, gt, threshold=args.threshold,
                            normalize=args.normalize, sweep=not args.no_sweep,
                            images=not args.no_images, samples=args.samples, seed=args.seed,
-                           crop=args.crop)
+                           crop=args.crop, protocol=args.protocol,
+                           volume_samples=args.volume_samples)
     if not args.with_sweep_rows:
         result.pop("sweep", None)
     if args.json:
