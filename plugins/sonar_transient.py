@@ -60,8 +60,9 @@ _PISTON_FIRST_NULL_X = 3.831705970
 _PISTON_MAIN_LOBE_FRACTION = 0.9   # share of TX samples drawn inside the main lobe
 AMPLITUDES = ("intensity", "pressure", "coherent")
 BOUNCE1_ESTIMATORS = ("surface", "cone")
-DEFAULT_SURFACE_SPACING = 5e-3     # m: longest edge of the bounce-1 quadrature's facets
-DEFAULT_PATH_SAMPLES = 8           # path-length quantiles splatted per facet
+DEFAULT_SURFACE_SPACING = 8e-3     # m: longest edge of the bounce-1 quadrature's facets
+DEFAULT_VERTEX_SPREAD = 0.0        # m: disk radius over which bounce >= 2 vertices spread
+DEFAULT_PATH_SAMPLES = 16          # path-length quantiles splatted per facet
 DEFAULT_SPECKLE_SPACING = 3e-3     # m: scatterer cells of the 'coherent' amplitude
 
 
@@ -208,6 +209,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         if not 1 <= self.path_samples <= 64:
             raise ValueError(f"sonar_transient: path_samples must be in 1..64, "
                              f"got {self.path_samples}")
+        self.vertex_spread = float(props.get("vertex_spread", DEFAULT_VERTEX_SPREAD))
         self.speckle_seed = int(props.get("speckle_seed", 0))
         if not 0 <= self.speckle_seed < 2**32:
             raise ValueError(f"sonar_transient: speckle_seed must be in [0, 2^32), "
@@ -552,8 +554,26 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                 values = [value]
                 if self.complex_output:
                     values = [value * dr.cos(phase), value * dr.sin(phase)]
-                for h, v in zip(hists, values):
-                    self._splat(h, v, length + dist, pose, slot, bounce, ctx, connect)
+                if bounce == 0 or self.vertex_spread <= 0.0:
+                    for h, v in zip(hists, values):
+                        self._splat(h, v, length + dist, pose, slot, bounce, ctx, connect)
+                else:
+                    # Spread over a disk of radius ρ_s around the vertex in its tangent
+                    # plane: L varies along the tangential gradient g of the last two
+                    # legs; a uniform disk maps to the semicircle density of L over
+                    # [−ρ_s|g|, ρ_s|g|], taken at m stratified points with weights.
+                    grad = ray.d - w_rx                    # ∂(|x−x_prev| + |x−rx|)/∂x
+                    grad = grad - dr.dot(grad, n_geo) * n_geo
+                    half_span = dr.norm(grad) * self.vertex_spread
+                    m = self.path_samples
+                    shift = rng.next_float32()
+                    ts = [(2.0 * (i + shift) / m) - 1.0 for i in range(m)]
+                    ws = [dr.safe_sqrt(1.0 - t * t) for t in ts]
+                    norm = 1.0 / dr.maximum(sum(ws[1:], ws[0]), 1e-12)
+                    for t, wt in zip(ts, ws):
+                        for h, v in zip(hists, values):
+                            self._splat(h, v * wt * norm, length + dist + t * half_span, pose,
+                                        slot, bounce, ctx, connect)
 
             if bounce + 1 < self.max_bounces:
                 u2 = mi.Point2f(rng.next_float32(), rng.next_float32())

@@ -404,18 +404,34 @@ def test_bistatic_matches_brute_force(mi, box_on_ground, rx_offset):
     assert np.max(np.abs(cdf_mc - cdf_bf)) < 0.01
 
 
-def test_bounce_two_needs_a_second_surface(mi, box_on_ground, sphere_scene):
+def test_bounce_two_needs_a_second_surface(mi, box_on_ground, sphere_scene, tmp_path):
+    """A convex box on a plane: every bounce-2 path meets the box once and the ground once,
+    so with the same random numbers halving the ground's albedo halves bounce 2 exactly;
+    bounce 3 (box-ground-box and ground-box-ground) scales by a factor strictly between
+    1/4 and 1/2; bounce 1 of the box alone does not change. A convex object alone has
+    exactly no bounce 2 or 3."""
     scene, _, _ = box_on_ground
+    path = tmp_path / "box.ply"
+    _box_mesh().export(path)
+    darker = mi.load_dict({
+        "type": "scene",
+        "ground": {"type": "rectangle", "bsdf": diffuse(0.5),
+                   "to_world": mi.ScalarTransform4f().scale([GROUND_HALF, GROUND_HALF, 1.0])},
+        "box": {"type": "ply", "filename": str(path), "face_normals": True,
+                "bsdf": diffuse(0.8)}})
     tx = np.array([0.0, -0.45, 0.25])
     rx = tx + np.array([0.04, 0.0, 0.0])
     aim = np.array([0.0, 0.0, 0.03])
     look = (aim - tx) / np.linalg.norm(aim - tx)
-    integ = integrator(mi, bounces=3, tx_bw=60.0, rx_bw=60.0)
-    hist = render(integ, scene, tx, rx, look, look, 0.8, int(0.8 / W), 50_000, replicas=4)
+    integ = integrator(mi, bounces=3, tx_bw=60.0, rx_bw=60.0, bounce1="cone")
+    args = (tx, rx, look, look, 0.8, int(0.8 / W), 50_000)
+    hist = render(integ, scene, *args, replicas=4)
     totals = hist.sum(axis=2)                       # [replica, bounce]
     mean, se = totals.mean(axis=0), totals.std(axis=0, ddof=1) / 2
-    assert mean[1] > 10 * se[1] and mean[1] > 1e-3 * mean[0]      # box ↔ ground interreflection
-    assert mean[2] > 0
+    assert mean[1] > 10 * se[1] and mean[2] > 10 * se[2]      # box ↔ ground interreflection
+    dark = render(integ, darker, *args, replicas=4).sum(axis=2).mean(axis=0)
+    assert dark[1] / mean[1] == pytest.approx(0.5, rel=1e-5)
+    assert 0.25 + 0.01 < dark[2] / mean[2] < 0.5 - 0.01
     # Same integrator, a convex object alone: bounces 2 and 3 are exactly empty.
     pos, look = (D_SPHERE, 0, 0), (-1, 0, 0)
     alone = render(integ, sphere_scene, pos, pos, look, look, 1.75, int(0.3 / W), 50_000)
