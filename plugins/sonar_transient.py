@@ -62,6 +62,7 @@ AMPLITUDES = ("intensity", "pressure", "coherent")
 BOUNCE1_ESTIMATORS = ("surface", "cone")
 DEFAULT_SURFACE_SPACING = 8e-3     # m: longest edge of the bounce-1 quadrature's facets
 DEFAULT_VERTEX_SPREAD = 0.0        # m: disk radius over which bounce >= 2 vertices spread
+DEFAULT_GUIDE_FRACTION = 0.5      # share of continuations aimed at the objects' bounding sphere
 DEFAULT_PATH_SAMPLES = 16          # path-length quantiles splatted per facet
 DEFAULT_SPECKLE_SPACING = 3e-3     # m: scatterer cells of the 'coherent' amplitude
 
@@ -210,6 +211,10 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"sonar_transient: path_samples must be in 1..64, "
                              f"got {self.path_samples}")
         self.vertex_spread = float(props.get("vertex_spread", DEFAULT_VERTEX_SPREAD))
+        self.guide_fraction = float(props.get("guide_fraction", DEFAULT_GUIDE_FRACTION))
+        if not 0.0 <= self.guide_fraction < 1.0:
+            raise ValueError(f"sonar_transient: guide_fraction must be in [0, 1), "
+                             f"got {self.guide_fraction}")
         self.speckle_seed = int(props.get("speckle_seed", 0))
         if not 0 <= self.speckle_seed < 2**32:
             raise ValueError(f"sonar_transient: speckle_seed must be in [0, 2^32), "
@@ -306,7 +311,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError("sonar_transient: path_start must be finite and bin_width > 0")
         if not (0 <= seed < 2**32 and 0 <= pose_offset and pose_offset + n <= 2**32):
             raise ValueError("sonar_transient: seed must be in [0, 2^32), pose indices < 2^32")
-        traces = self.bounce1 == "cone" or self.max_bounces > 1
+        traces = self.bounce1 == "cone"     # else bounces >= 2 start at the surface points
         if halves and traces and paths_per_pose < 2:
             raise ValueError("sonar_transient: halves=True needs paths_per_pose >= 2")
         n_slots = 2 if halves else 1
@@ -416,6 +421,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         cos_i = dr.dot(n_geo, w_t)                      # geometric, as the TX-cone sampling
         cos_o = dr.maximum(dr.dot(n_sh, w_r), 0.0)
         active = (cos_i > 0.0) & (dr.dot(n_geo, w_r) > 0.0) & (cos_o > 0.0)
+        ls = None
         if corners is None:
             lo_len = hi_len = length
         else:   # path lengths at the facet's corners: a ≤ c ≤ b
@@ -424,21 +430,34 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             hi_len = dr.maximum(dr.maximum(ls[0], ls[1]), ls[2])
         active &= (hi_len > ctx["start"] - ctx["margin"]) & (lo_len < ctx["end"] + ctx["margin"])
         ct, cr = -dr.dot(w_t, b_tx), -dr.dot(w_r, b_rx)
+        weight = area * (1.0 if ctx["halves"] else 0.5)
         if self.amplitude == "intensity":
-            value = (self.tx_beam.gain(ct, ctx["tx_c"]) * self.rx_beam.gain(cr, ctx["rx_c"])
+            g_t = self.tx_beam.gain(ct, ctx["tx_c"])
+            value = (g_t * self.rx_beam.gain(cr, ctx["rx_c"])
                      * rho * dr.inv_pi * cos_i * cos_o / (r_t * r_t * r_r * r_r))
         else:   # the seed's Eq. (1): b_T b_R σ / (2π r_T r_R), σ = sqrt(ρ cosθ_i cosθ_o)
-            value = (self.tx_beam.amplitude(ct, ctx["tx_c"]) * self.rx_beam.amplitude(cr, ctx["rx_c"])
+            g_t = self.tx_beam.amplitude(ct, ctx["tx_c"])
+            value = (g_t * self.rx_beam.amplitude(cr, ctx["rx_c"])
                      * dr.sqrt(rho * cos_i * cos_o) * (0.5 * dr.inv_pi) / (r_t * r_r))
-        value = value * area * (1.0 if ctx["halves"] else 0.5)
+        value = value * weight
         active &= value != 0.0
-        # Visibility: shadow rays from the point (offset along the oriented normal).
+        # Visibility: shadow rays from the point (offset along the oriented normal). The TX
+        # ray also serves the paths of bounces >= 2 that start at this point.
+        lit = (cos_i > 0.0) & (g_t != 0.0)
+        lit = (active | lit) if self.max_bounces > 1 else active
         scale = dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
         origin = p + n_geo * ((1.0 + scale) * mi.math.RayEpsilon)
         for target in (p_tx, p_rx):
             ray = mi.Ray3f(origin, target - origin)
             ray.maxt = Float(1.0 - mi.math.ShadowEpsilon)
-            active &= ~scene.ray_test(ray, active)
+            if target is p_tx:
+                lit &= ~scene.ray_test(ray, lit)
+                active &= lit
+            else:
+                active &= ~scene.ray_test(ray, active)
+        if self.max_bounces > 1:
+            self._facet_paths(scene, hists, ctx, pose, half, p, n_geo, n_sh, rho, cos_i, r_t,
+                              g_t * weight, phase, corners, lit, key, sid, p_tx, p_rx, b_rx)
         slot = half if ctx["halves"] else UInt32(0)
         values = [value]
         if self.complex_output:
@@ -451,20 +470,121 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         # facet's area maps to the triangular density of L between its corners' lengths
         # a ≤ c ≤ b. Spread the value over m stratified quantiles of that density (one
         # random shift per lane), so the facet's echo is smooth in time, not a spike.
-        a, b = lo_len, hi_len
-        c = ls[0] + ls[1] + ls[2] - a - b
-        span = dr.maximum(b - a, 1e-12)
-        f_c = (c - a) / span
         m = self.path_samples
         shift = Float(mi.sample_tea_32(key, sid ^ 0x80000000)[0] >> 8) * (1.0 / 16777216.0)
         values = [v * (1.0 / m) for v in values]
+        for li in self._quantiles(ls, shift, m):
+            for h, v in zip(hists, values):
+                self._splat(h, v, li, pose, slot, 0, ctx, active)
+
+    # ------------------------------------------------------------------ bounces >= 2
+    def _facet_paths(self, scene, hists, ctx, pose, half, p, n_geo, n_sh, albedo, cos_in, r_t,
+                     tx_weight, phase, corners, active, key, sid, p_tx, p_rx, b_rx):
+        """Bounces 2…B from the surface points: one path per lit stratum point x₁.
+
+        x₁ carries the TX's transfer b_T cosθ_i dA / r_T² (intensity; a_T dA / r_T for
+        pressure: the TX-cone tracer's weight with dω = cosθ_i dA / r_T²); the path goes on
+        by cosine/guide sampling with next-event connections to the RX, as the tracer.
+        For facets, the first two legs |TX − x₁| + |x₁ − x₂| are spread over the facet
+        (triangular density between the corners' values) like bounce 1.
+        """
+        Float = mi.Float
+        intensity = self.amplitude == "intensity"
+        rng = mi.PCG32(1, mi.sample_tea_64(key, sid), mi.sample_tea_64(sid, key ^ 0x5bd1e995))
+        slot = half if ctx["halves"] else mi.UInt32(0)
+        guide = self._guide(scene)
+        throughput = tx_weight * (cos_in / (r_t * r_t) if intensity else 1.0 / r_t)
+        prev_p, length, quantiles = p, Float(0.0), None
+        n_geo_v, n_sh_v = n_geo, n_sh
+        ray_flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
+        m = self.path_samples
+        for bounce in range(1, self.max_bounces):
+            u_pick = rng.next_float32()
+            u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+            d_new, inv_pdf = self._continuation(prev_p, n_sh_v, u_pick, u2, guide)
+            cos_new = dr.dot(d_new, n_sh_v)
+            active &= (dr.dot(d_new, n_geo_v) > 0.0) & (cos_new > 0.0)
+            if intensity:
+                throughput *= albedo * dr.inv_pi * cos_new * inv_pdf
+            else:
+                throughput *= dr.sqrt(albedo * cos_in * cos_new) * (0.5 * dr.inv_pi) * inv_pdf
+            ray = self._continue_ray(prev_p, d_new)
+            si = scene.ray_intersect(ray, ray_flags, dr.opaque(mi.Bool, False), active)
+            active &= si.is_valid()
+            seg = dr.norm(si.p - prev_p)
+            if bounce == 1:
+                if corners is not None:
+                    lc = [dr.norm(p_tx - q) + dr.norm(q - si.p) for q in corners]
+                    quantiles = self._quantiles(lc, rng.next_float32(), m)
+                else:
+                    quantiles = [r_t + seg]
+            else:
+                length += seg
+            prev_p = si.p
+            flip = dr.select(dr.dot(si.n, ray.d) > 0.0, -1.0, 1.0)
+            n_geo_v = si.n * flip
+            n_sh_v = (si.sh_frame.n if self.shading_normals else si.n) * flip
+            albedo = si.bsdf().eval_diffuse_reflectance(si, active)[0]
+            if not intensity:
+                cos_in = -dr.dot(n_geo_v, ray.d)
+                active &= cos_in > 1e-6
+                throughput = throughput * seg / cos_in
+                if self.amplitude == "coherent":
+                    phase = phase + self._voxel_phase(si.p, bounce, ctx)
+            to_rx = p_rx - si.p
+            dist2 = dr.squared_norm(to_rx)
+            dist = dr.sqrt(dist2)
+            w_rx = to_rx / dist
+            cos_out = dr.maximum(dr.dot(n_sh_v, w_rx), 0.0)
+            c_rx = -dr.dot(w_rx, b_rx)
+            if intensity:
+                value = (throughput * albedo * dr.inv_pi * cos_out
+                         * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
+            else:
+                value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
+                         * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
+            connect = active & (dr.dot(n_geo_v, w_rx) > 0.0) & (value != 0.0)
+            connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
+            values = [value * (1.0 / len(quantiles))]
+            if self.complex_output:
+                values = [values[0] * dr.cos(phase), values[0] * dr.sin(phase)]
+            rest = length + dist
+            offsets = [0.0] * len(quantiles)
+            scales = [1.0] * len(quantiles)
+            if self.vertex_spread > 0.0 and len(quantiles) > 1:
+                # Spread x_k over a disk of radius vertex_spread in its tangent plane: the
+                # semicircle density of L along the tangential gradient of the last two
+                # legs, at stratified points paired with the quantiles by a permutation.
+                grad = ray.d - w_rx
+                grad = grad - dr.dot(grad, n_geo_v) * n_geo_v
+                half_span = dr.norm(grad) * self.vertex_spread
+                n_q = len(quantiles)
+                shift = rng.next_float32()
+                ts = [2.0 * ((i * 5) % n_q + shift) / n_q - 1.0 for i in range(n_q)]
+                ws = [dr.safe_sqrt(1.0 - t * t) for t in ts]
+                total = dr.maximum(sum(ws[1:], ws[0]), 1e-12)
+                offsets = [t * half_span for t in ts]
+                scales = [w * (n_q / total) for w in ws]
+            for q, off, sc in zip(quantiles, offsets, scales):
+                for h, v in zip(hists, values):
+                    self._splat(h, v * sc, q + rest + off, pose, slot, bounce, ctx, connect)
+
+    @staticmethod
+    def _quantiles(ls, shift, m):
+        """m stratified quantiles (i + shift)/m of the triangular density between the
+        three corner values ``ls`` (a linear function's image of a uniform triangle)."""
+        a = dr.minimum(dr.minimum(ls[0], ls[1]), ls[2])
+        b = dr.maximum(dr.maximum(ls[0], ls[1]), ls[2])
+        c = ls[0] + ls[1] + ls[2] - a - b
+        span = dr.maximum(b - a, 1e-12)
+        f_c = (c - a) / span
+        out = []
         for i in range(m):
             q = (i + shift) * (1.0 / m)
             lo = a + dr.safe_sqrt(q * span * (c - a))
             hi = b - dr.safe_sqrt((1.0 - q) * span * (b - c))
-            li = dr.select(q < f_c, lo, hi)
-            for h, v in zip(hists, values):
-                self._splat(h, v, li, pose, slot, 0, ctx, active)
+            out.append(dr.select(q < f_c, lo, hi))
+        return out
 
     # ------------------------------------------------------------------ TX-cone paths
     def _trace(self, scene, hists, ctx, paths_per_pose, ray_stats=None):
@@ -495,6 +615,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         b_tx = dr.gather(mi.Vector3f, ctx["tx_dir"], pose)
         b_rx = dr.gather(mi.Vector3f, ctx["rx_dir"], pose)
         intensity = self.amplitude == "intensity"
+        guide = self._guide(scene) if self.max_bounces > 1 else None
 
         # Bounce 0: leave the TX in a direction drawn from its beam.
         u_pick = rng.next_float32()
@@ -576,16 +697,53 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                                         slot, bounce, ctx, connect)
 
             if bounce + 1 < self.max_bounces:
+                u_pick = rng.next_float32()
                 u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-                d_local = mi.warp.square_to_cosine_hemisphere(u2)
-                d_new = mi.Frame3f(n_shade).to_world(d_local)
-                active &= dr.dot(d_new, n_geo) > 0.0   # shading normal may point under the surface
-                if intensity:
-                    throughput *= albedo                   # (ρ/π · cos) / (cos/π)
-                else:   # σ/(2π) · π/cosθ_o with σ = sqrt(ρ cosθ_i cosθ_o)
-                    cos_new = dr.maximum(d_local.z, 1e-12)
-                    throughput *= dr.sqrt(albedo * cos_in * cos_new) * 0.5 / cos_new
+                d_new, inv_pdf = self._continuation(si.p, n_shade, u_pick, u2, guide)
+                cos_new = dr.dot(d_new, n_shade)
+                active &= (dr.dot(d_new, n_geo) > 0.0) & (cos_new > 0.0)
+                if intensity:                              # (ρ/π · cosθ_o) / pdf
+                    throughput *= albedo * dr.inv_pi * cos_new * inv_pdf
+                else:   # σ/(2π) / pdf with σ = sqrt(ρ cosθ_i cosθ_o)
+                    throughput *= dr.sqrt(albedo * cos_in * cos_new) * (0.5 * dr.inv_pi) * inv_pdf
                 ray = self._continue_ray(si.p, d_new)
+
+    def _guide(self, scene):
+        """Bounding sphere (centre, radius) of the scene's non-flat shapes, or None."""
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for shape in scene.shapes():
+            bb = shape.bbox()
+            a, b = np.array(bb.min, np.float64), np.array(bb.max, np.float64)
+            if np.all(b - a > 1e-6):
+                lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+        if not np.all(np.isfinite(lo)) or self.guide_fraction <= 0.0:
+            return None
+        centre = (lo + hi) / 2.0
+        return {"centre": mi.Point3f(*(dr.opaque(mi.Float, float(v)) for v in centre)),
+                "radius2": dr.opaque(mi.Float, float(np.sum((hi - lo) ** 2) / 4.0)),
+                "q": dr.opaque(mi.Float, self.guide_fraction)}
+
+    @staticmethod
+    def _continuation(p, n, u_pick, u2, guide):
+        """A continuation direction and 1/pdf (sr): cosine-weighted about ``n``, or (one-sample
+        MIS, probability q) uniform in the cone towards the guide sphere when ``p`` is
+        outside it; pdf = q·[in cone]/Ω + (1 − q)·cos⁺/π, unbiased for any q."""
+        frame = mi.Frame3f(n)
+        d_cos = frame.to_world(mi.warp.square_to_cosine_hemisphere(u2))
+        if guide is None:
+            return d_cos, dr.pi / dr.maximum(dr.dot(d_cos, n), 1e-12)
+        to_c = guide["centre"] - p
+        dist2 = dr.squared_norm(to_c)
+        outside = dist2 > guide["radius2"] * 1.0001
+        cos_max = dr.safe_sqrt(1.0 - guide["radius2"] / dr.maximum(dist2, 1e-30))
+        axis = to_c * dr.rsqrt(dr.maximum(dist2, 1e-30))
+        d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u2, cos_max))
+        q = dr.select(outside, guide["q"], 0.0)
+        d = dr.select(u_pick < q, d_cone, d_cos)
+        solid = 2.0 * dr.pi * dr.maximum(1.0 - cos_max, 1e-12)
+        in_cone = outside & (dr.dot(d, axis) >= cos_max)
+        pdf = dr.select(in_cone, q / solid, 0.0) + (1.0 - q) * dr.maximum(dr.dot(d, n), 0.0) * dr.inv_pi
+        return d, dr.select(pdf > 0.0, 1.0 / pdf, 0.0)
 
     @staticmethod
     def _voxel_phase(p, bounce, ctx):
