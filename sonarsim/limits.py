@@ -121,3 +121,31 @@ def check_upsample(upsample: int, option: str = "--upsample") -> int:
     if int(upsample) != upsample or not 1 <= upsample <= MAX_UPSAMPLE:
         raise InputError(f"{option} must be an integer in 1..{MAX_UPSAMPLE}, got {upsample}")
     return int(upsample)
+
+
+# ----------------------------------------------------------------------------- estimates
+
+#: Bytes per histogram bin of a pose while rendered: two half-estimates, each a float64
+#: Dr.Jit buffer, its float32 copy and NumPy copies (sonarsim.render's 20 bytes, twice).
+SIM_BYTES_PER_BIN = 40
+#: Bytes per FFT sample of the pulse convolution: float64 input, complex128 spectrum, float64
+#: result.
+SIM_BYTES_PER_FFT_SAMPLE = 32
+
+
+def simulate_memory(n_poses: int, bounces: int, n_bins: int, n_samples: int,
+                    pulse_samples: int, oversample: int, chunk_size: int | None = None,
+                    convolve_block: int = 128) -> tuple[int, str]:
+    """(peak bytes, how they are made up) of ``sonarsim simulate``: one chunk of histograms
+    (at least one pose, whatever the memory budget), the FFT convolution of a block of
+    pings at fs·oversample, and the N x T waveforms the noise pass holds."""
+    chunk = max(1, min(n_poses, chunk_size or 1))
+    hist = chunk * bounces * n_bins * SIM_BYTES_PER_BIN
+    n_fft = n_bins + pulse_samples * oversample
+    block = max(1, min(n_poses, convolve_block))
+    conv = block * n_fft * SIM_BYTES_PER_FFT_SAMPLE
+    waves = n_poses * n_samples * 12
+    detail = (f"{chunk} poses x {bounces} bounces x {n_bins} bins x {SIM_BYTES_PER_BIN} bytes"
+              f" + {block} pings x {n_fft} FFT samples x {SIM_BYTES_PER_FFT_SAMPLE} bytes"
+              f" + {n_poses} pings x {n_samples} samples x 12 bytes")
+    return hist + conv + waves, detail

@@ -356,3 +356,54 @@ def test_corrupted_partial_file_is_verified_before_resuming(point_ds, tmp_path, 
     w.finish()
     result = SonarDataset.read(out)                # no NaN rows, the same data
     assert np.array_equal(result.waveforms, point_ds.waveforms)
+
+
+# ----------------------------------------------------------------------------- simulate / render
+
+SIM = ["simulate", "sphere", "--poses", "cylindrical:2:1", "--paths-per-pose", "600",
+       "--no-progress"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--fs", "1e12"], "--fs must be in (0, 1e+08] Hz, got 1e+12"),
+    (["--pulse", "lfm:30000:10000:10"], "lasts 10 s (1000000 samples at 100000 Hz)"),
+    (["--fs", "2e7", "--max-memory", "64M"], "the simulation needs"),
+    (["--pulse", "ZEROS"], "is all zero: every waveform would be zero"),
+])
+def test_simulate_refuses_before_rendering(tmp_path, capsys, extra, message):
+    if "ZEROS" in extra:
+        np.save(tmp_path / "zeros.npy", np.zeros(100))
+        extra = ["--pulse", str(tmp_path / "zeros.npy")]
+    out = tmp_path / "d.h5"
+    start = time.perf_counter()
+    assert sonarsim_main(SIM + ["--out", str(out)] + extra) == 2
+    assert time.perf_counter() - start < 30
+    assert message in one_line_error(capsys)
+    assert not out.exists() and not Path(str(out) + ".partial").exists()
+
+
+def test_finished_simulate_is_not_rendered_again(tmp_path, capsys):
+    out = tmp_path / "d.h5"
+    assert sonarsim_main(SIM + ["--out", str(out)]) == 0
+    before = out.stat().st_mtime_ns, out.read_bytes()
+    capsys.readouterr()
+    assert sonarsim_main(SIM + ["--out", str(out)]) == 0          # same settings
+    assert "already complete" in capsys.readouterr().err
+    assert (out.stat().st_mtime_ns, out.read_bytes()) == before
+    assert sonarsim_main(SIM + ["--out", str(out), "--seed", "7"]) == 2   # other settings
+    assert "file exists (not this run's result); pass --force" in one_line_error(capsys)
+    assert out.read_bytes() == before[1]
+    assert sonarsim_main(SIM + ["--out", str(out), "--seed", "7", "--force"]) == 0
+    assert SonarDataset.read(out).seed == 7
+
+
+def test_render_refuses_huge_fs_and_existing_output(tmp_path, capsys):
+    out = tmp_path / "t.h5"
+    render = ["render", "sphere", "--poses", "cylindrical:2:1", "--paths-per-pose", "200",
+              "--no-progress", "--out", str(out)]
+    assert sonarsim_main(render + ["--fs", "1e12"]) == 2
+    assert "--fs must be in" in one_line_error(capsys)
+    out.write_text("keep me")
+    assert sonarsim_main(render) == 2
+    assert "file exists; pass --force" in one_line_error(capsys)
+    assert out.read_text() == "keep me"

@@ -32,20 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check_memory(scene, poses, args, box) -> None:
     """Refuse a render whose transients cannot fit in memory (one line, not a MemoryError)."""
-    import os
     from ..render import path_window
     window = path_window(scene, poses, fs=args.fs, oversample=args.oversample,
                          sound_speed=args.sound_speed, path_range=args.path_range, box=box)
+    from .. import limits
     need = len(poses) * args.bounces * window.n_bins * 4
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return
-    if need > 0.8 * total:
-        raise InputError(f"the transients need {need / 2**30:.1f} GiB ({len(poses)} poses x "
-                         f"{args.bounces} bounces x {window.n_bins} bins) but this machine has "
-                         f"{total / 2**30:.1f} GiB; render fewer poses, or use `sonarsim "
-                         f"simulate --keep-transients`, which streams to disk")
+    limits.check_memory(need, "the transients", f"{len(poses)} poses x {args.bounces} bounces "
+                        f"x {window.n_bins} bins", "render fewer poses, or use `sonarsim "
+                        "simulate --keep-transients`, which streams to disk")
 
 
 def _estimator_kwargs(args: argparse.Namespace) -> dict:
@@ -78,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     poses = parity_poses(args, trajectory(args.poses, box=spec.box))
     beams = beams_from_args(args)
     scene = spec.to_mitsuba()
+    from .. import limits
+    limits.check_fs(args.fs)
     _check_memory(scene, poses, args, spec.box)
     estimator = _estimator_kwargs(args)
     with dr_threads(args.threads):

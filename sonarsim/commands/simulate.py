@@ -15,6 +15,7 @@ from ._render_common import (add_render_arguments, add_scene_and_pose_arguments,
                              beams_from_args, check_common, parity_meta, parity_poses)
 
 HELP = "Simulate a sonar dataset (waveforms, pulse, geometry, ground truth) of a scene."
+OUTPUT_EXISTS_OK = True   # run() resumes a partial output, reports a finished one (--force)
 EPILOG = ("Fidelity: every pose is rendered as two independent half-estimates; their "
           "difference measures the Monte-Carlo noise after matched filtering, stored as meta "
           "mc_snr_db (with --snr-db also effective_snr_db: the added noise tops the Monte-Carlo "
@@ -68,6 +69,52 @@ def parse_bounce_set(text: str | None) -> tuple[int, ...] | None:
     return values
 
 
+def _check_before_pulse(args: argparse.Namespace) -> None:
+    """--fs and an LFM's duration within bounds before the pulse is generated."""
+    from .. import limits
+    limits.check_fs(args.fs)
+    parts = str(args.pulse).split(":")
+    if parts[0].lower() == "lfm" and len(parts) >= 4:
+        try:
+            duration = float(parts[3])
+        except ValueError:
+            return                       # the pulse parser reports it
+        limits.check_pulse_length(round(duration * args.fs), args.fs, f"pulse {args.pulse}")
+
+
+def _preflight(args: argparse.Namespace, spec, poses, settings) -> bool:
+    """Bounds and memory estimate before any work; True when ``--out`` already holds this
+    very run (reported, nothing to do). An existing other file needs ``--force``."""
+    import numpy as np
+
+    from .. import limits, outputs
+    from ..simulate import CONVOLVE_BLOCK, simulation_window
+    pulse = settings.pulse
+    limits.check_fs(args.fs)
+    limits.check_pulse_length(len(pulse.samples), pulse.fs, f"pulse {pulse.spec}")
+    if not np.any(pulse.samples):
+        raise InputError(f"pulse {pulse.spec} is all zero: every waveform would be zero")
+    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
+    need, detail = limits.simulate_memory(len(poses), settings.bounces, window.n_bins,
+                                          crop.num_samples, len(pulse.samples),
+                                          settings.oversample, settings.chunk_size,
+                                          CONVOLVE_BLOCK)
+    limits.check_memory(need, "the simulation", detail,
+                        "lower --fs or --oversample, shorten the pulse or simulate fewer poses")
+    request = outputs.digest(spec, poses.tx, poses.rx, poses.tx_boresight, poses.rx_boresight,
+                             {k: v for k, v in vars(settings).items()
+                              if k not in ("chunk_size", "threads", "log")})
+    settings.extra_meta["request_id"] = request
+    if args.out.exists() and not args.force:
+        if outputs.finished_request(args.out, request):
+            print(f"{args.out}: already complete (same scene, poses and settings); nothing "
+                  "to do (--force renders it again)", file=sys.stderr)
+            return True
+        raise InputError(f"--out {args.out}: file exists (not this run's result); pass "
+                         "--force to replace it")
+    return False
+
+
 def run(args: argparse.Namespace) -> int:
     from ..geometry import trajectory
     from ..scene import load_scene
@@ -75,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     from ..simulate import SimulationSettings, simulate
 
     check_common(args)
+    _check_before_pulse(args)
     bounce_set = parse_bounce_set(args.bounce_set)
     beams = beams_from_args(args)
     if args.reference_parity:
@@ -102,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
         surface_spacing=args.surface_spacing, amplitude=args.amplitude,
         speckle_seed=args.speckle_seed, bounce1=args.bounce1_estimator,
         extra_meta={"poses": str(args.poses), **parity_meta(args)})
+    if _preflight(args, spec, poses, settings):
+        return 0
     out = simulate(spec, poses, args.out, settings, resume=not args.restart,
                    progress=not args.no_progress)
     from ..dataset import inspect
