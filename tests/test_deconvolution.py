@@ -1,9 +1,6 @@
 """Pulse deconvolution (recon.deconvolution, recon deconvolve) and deconvolved datasets."""
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import h5py
 import numpy as np
 import pytest
@@ -209,16 +206,18 @@ def test_backprojection_of_a_deconvolved_dataset_is_sharper(tmp_path):
 
 # ---- CLI ------------------------------------------------------------------------------------
 
-def _recon(*args):
-    return subprocess.run([sys.executable, "-m", "recon.cli", *map(str, args)],
-                          capture_output=True, text=True)
+def _recon(capsys, *args):
+    from recon.cli import main
+    rc = main([str(a) for a in args])
+    return rc, capsys.readouterr().err
 
 
-def test_cli_inr_two_iterations_end_to_end(tmp_path):
+def test_cli_inr_two_iterations_end_to_end(tmp_path, capsys):
     _, path = _point_dataset(tmp_path, 12)
     out = tmp_path / "pd.h5"
-    r = _recon("deconvolve", path, "--out", out, "--iterations", "2", "--no-progress")
-    assert r.returncode == 0, r.stderr
+    rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--iterations", "2",
+                     "--no-progress")
+    assert rc == 0, err
     back = SonarDataset.read(out)
     info = back.meta["deconvolution_settings"]
     assert back.waveform_kind == "deconvolved_analytic" and back.n_pings == 12
@@ -227,14 +226,14 @@ def test_cli_inr_two_iterations_end_to_end(tmp_path):
     assert np.all(np.isfinite(back.waveforms))
 
 
-def test_cli_bad_input_gives_one_line_errors(tmp_path):
+def test_cli_bad_input_gives_one_line_errors(tmp_path, capsys):
     _, path = _point_dataset(tmp_path, 4)
     pd = tmp_path / "pd.h5"
-    assert _recon("deconvolve", path, "--out", pd, "--method", "wiener").returncode == 0
+    assert _recon(capsys, "deconvolve", path, "--out", pd, "--method", "wiener")[0] == 0
     for args, text in [((tmp_path / "none.h5",), "no such file"),
                        ((pd,), "already"),
                        ((path, "--lr", "-1"), "lr"),
                        ((path, "--method", "wiener", "--wiener-lambda", "0"), "lambda")]:
-        r = _recon("deconvolve", *args, "--out", tmp_path / "x.h5")
-        assert r.returncode == 2, (args, r.stderr)
-        assert text in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        rc, err = _recon(capsys, "deconvolve", *args, "--out", tmp_path / "x.h5")
+        assert rc == 2, (args, err)
+        assert text in err and len(err.strip().splitlines()) == 1, err
