@@ -407,3 +407,28 @@ def test_render_refuses_huge_fs_and_existing_output(tmp_path, capsys):
     assert sonarsim_main(render) == 2
     assert "file exists; pass --force" in one_line_error(capsys)
     assert out.read_text() == "keep me"
+
+
+def test_export_keeps_existing_outputs_without_force(ds_file, tmp_path, capsys):
+    vol = tmp_path / "v.h5"
+    assert _bp(ds_file, vol) == 0
+    mip = tmp_path / "mip.png"
+    mip.write_text("old picture")
+    assert recon_main(["export", str(vol), "--mip", str(mip)]) == 2
+    assert "--mip" in one_line_error(capsys) and mip.read_text() == "old picture"
+    slices = tmp_path / "slices"
+    slices.mkdir()
+    (slices / "mine.txt").write_text("x")
+    assert recon_main(["export", str(vol), "--slices", str(slices)]) == 2
+    assert "directory is not empty" in one_line_error(capsys)
+    assert recon_main(["export", str(vol), "--mip", str(mip), "--force"]) == 0
+    assert mip.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_gd_refuses_a_huge_grid_before_allocating(ds_file, tmp_path, capsys):
+    out = tmp_path / "v.h5"
+    start = time.perf_counter()
+    assert recon_main(["gd", str(ds_file), "--out", str(out), "--bounds", *BOUNDS,
+                       "--shape", "2000", "2000", "2000", "--no-progress"]) == 2
+    assert time.perf_counter() - start < 30
+    assert "GiB (2000 x 2000 x 2000 voxels" in one_line_error(capsys)

@@ -10,6 +10,7 @@ from sonarsim.errors import InputError
 from .. import export
 
 HELP = "Export a volume: maximum-intensity projections, slices, marching-cubes mesh."
+OUTPUTS = ("mesh", "mip", "exr")    # checked, locked and kept unless --force (cli_common)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,6 +32,12 @@ def run(args: argparse.Namespace) -> int:
     if not any((args.mesh, args.mip, args.exr, args.slices)):
         raise InputError("nothing to export: give at least one of --mesh, --mip, --exr, --slices")
     threshold = export.check_threshold(args.threshold)
+    if args.slices is not None and args.slices.is_dir() and any(args.slices.iterdir()) \
+            and not args.force:
+        raise InputError(f"--slices {args.slices}: directory is not empty; pass --force to "
+                         "write the slices into it")
+    if args.slices is not None and args.slices.exists() and not args.slices.is_dir():
+        raise InputError(f"--slices {args.slices}: exists and is not a directory")
     vol = Volume.read(args.volume)
     mag = export.normalized_magnitude(vol.volume, args.normalize)
     mesh = None
