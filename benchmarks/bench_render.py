@@ -11,7 +11,16 @@ Three ways of doing the same job are timed:
                  sampling/shading/binning, Mitsuba only to trace the rays of each bounce
 
 Run:  .venv/bin/python benchmarks/bench_render.py [--poses 2000] [--paths 10000] [--bounces 3]
-The machine may be shared: timings are noisy; run once on an idle machine for numbers.
+(the TX-cone tracer, bounce1='cone'), or
+
+      .venv/bin/python benchmarks/bench_render.py --estimators [--estimator-poses 40]
+
+to compare the bounce-1 surface estimator (default) with the TX-cone tracer: per-pose wall
+and CPU time, facets/s or paths/s, and the Monte-Carlo SNR after matched filtering
+(lfm-20k pulse) measured from two half-estimates, 10·log10((E_total − E_mc)/E_mc) with
+E_mc = Σ|MF((h₀ − h₁)/2)|² — for all bounces and for bounce 1 alone.
+The machine may be shared: timings are noisy; CPU seconds (all threads) are printed next
+to wall seconds: CPU/2 is what an idle 2-core machine would take.
 """
 from __future__ import annotations
 
@@ -113,8 +122,68 @@ def numpy_pose(mi, scene, tx, rx, b_tx, b_rx, window, paths, bounces, rng, half_
     return hist.astype(np.float32), rays
 
 
+def mc_snr_db(halves: np.ndarray, crop, bounce_index=None) -> float:
+    """MC SNR after matched filtering of half-estimates [2, n, B, T] (see the module doc)."""
+    from sonarsim.fidelity import mf_energy
+    from sonarsim.simulate import make_pulse, oversampled_pulse, transients_to_waveforms
+    pulse = make_pulse("lfm-20k", 100e3).samples
+    pulse_os = oversampled_pulse(pulse, 20)
+    wf = transients_to_waveforms(halves.mean(axis=0), pulse_os, 20, crop.num_samples,
+                                 bounce_index)
+    d = transients_to_waveforms((halves[0] - halves[1]) / 2, pulse_os, 20, crop.num_samples,
+                                bounce_index)
+    total, noise = mf_energy(wf, pulse).sum(), mf_energy(d, pulse).sum()
+    return 10 * math.log10(max(total - noise, 1e-300) / noise)
+
+
+def estimators(args, mi, scene, all_poses, window) -> int:
+    """Surface estimator vs TX-cone tracer: cost per pose and MC SNR after matched filtering."""
+    from sonarsim import geometry, render
+    crop = geometry.crop_window(all_poses, geometry.SIM_BOX, render.DEFAULT_SOUND_SPEED, 100e3)
+    pick = np.linspace(0, len(all_poses) - 1, args.estimator_poses).round().astype(int)
+    poses = all_poses[pick]
+    configs = [("surface", {"bounce1": "surface"}, 1, args.bounces),
+               ("surface", {"bounce1": "surface"}, 1, 1),
+               ("cone", {"bounce1": "cone"}, args.paths, args.bounces),
+               ("cone", {"bounce1": "cone"}, args.paths, 1)]
+    print(f"\nEstimators: {len(poses)} poses spread over the scan, halves=True (both halves "
+          f"timed), lfm-20k pulse\n{'estimator':<10} {'B':>2} {'samples/pose':>13} "
+          f"{'wall ms/pose':>13} {'CPU ms/pose':>12} {'samples/s (CPU)':>16} {'MC SNR dB':>10} "
+          f"{'bounce 1 dB':>12} {'scan (CPU/2)':>13}")
+    for name, props, paths, bounces in configs:
+        integ = mi.load_dict({"type": "sonar_transient", "max_bounces": bounces, **props})
+        p = poses[:2]
+        integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
+                                window.path_start, window.bin_width, window.n_bins,
+                                max(2, paths), 0, halves=True)     # compile, build the facets
+        if name == "surface":
+            samples = integ.surface_strata(scene)[0].count * 2
+        else:
+            samples = paths
+        out, wall, cpu = [], time.perf_counter(), time.process_time()
+        for a in range(0, len(poses), 20):
+            p = poses[a:a + 20]
+            out.append(integ.render_transients(
+                scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight, window.path_start,
+                window.bin_width, window.n_bins, max(2, paths), 0, pose_offset=a, halves=True))
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        h = np.concatenate(out, axis=1)
+        snr = mc_snr_db(h, crop)
+        snr1 = mc_snr_db(h, crop, [0])
+        n = len(poses)
+        print(f"{name:<10} {bounces:>2} {samples:>13,} {wall / n * 1e3:>13.1f} "
+              f"{cpu / n * 1e3:>12.1f} {samples * n / cpu:>16.3g} {snr:>10.1f} {snr1:>12.1f} "
+              f"{FULL_SCAN_POSES * cpu / n / 2 / 60:>10.1f} min", flush=True)
+    print("samples: facets x 2 halves (surface) or paths (cone) per pose; scan: the "
+          f"{FULL_SCAN_POSES}-pose scan's render time at CPU/2 (an idle 2-core machine)")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--estimators", action="store_true",
+                    help="compare the surface estimator with the TX-cone tracer (see above)")
+    ap.add_argument("--estimator-poses", type=int, default=40)
     ap.add_argument("--poses", type=int, default=2000)
     ap.add_argument("--paths", type=int, default=10_000)
     ap.add_argument("--bounces", type=int, default=3)
@@ -134,6 +203,8 @@ def main(argv=None) -> int:
     pick = np.linspace(0, len(all_poses) - 1, args.poses).round().astype(int)
     poses = all_poses[pick]
     window = render.path_window(scene, all_poses, box=geometry.SIM_BOX)
+    if args.estimators:
+        return estimators(args, mi, scene, all_poses, window)
     chunk = render.choose_chunk_size(args.paths, args.bounces, window.n_bins)
     n_tri = sum(s.face_count() for s in scene.shapes() if isinstance(s, mi.Mesh))
     print(f"scene: bunny {n_tri} triangles + ground; window {window.n_bins} bins of "
@@ -143,7 +214,7 @@ def main(argv=None) -> int:
 
     # Compile (or load from Dr.Jit's disk cache) before timing.
     t0 = time.perf_counter()
-    integ = render.make_integrator(args.bounces)
+    integ = render.make_integrator(args.bounces, bounce1="cone")
     p = poses[:2]
     integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
                             window.path_start, window.bin_width, window.n_bins, 100, 0)
@@ -163,7 +234,8 @@ def main(argv=None) -> int:
     energy = np.zeros(args.bounces)
     chunk_times, t_prev = [], t0
     for sl, hist in render.iter_render(scene, poses, paths_per_pose=args.paths,
-                                       bounces=args.bounces, window=window, progress=False):
+                                       bounces=args.bounces, window=window, progress=False,
+                                       bounce1="cone"):
         energy += hist.sum(axis=(0, 2), dtype=np.float64)
         now = time.perf_counter()
         chunk_times.append((sl.stop - sl.start, now - t_prev))
