@@ -34,8 +34,9 @@ the pings (``loop``):
   three extra packet gathers per voxel-ping of the constants cost more than they save.
 
 Signal preparation (matched filter, FFT upsampling, packing) runs in NumPy on the host for
-blocks of 1 024 pings while the asynchronous kernels of the previous block run; at most two
-blocks of signals are alive (≈ 50 MB each for 608-sample pings at R = 5).
+blocks of up to 1 024 pings while the asynchronous kernels of the previous block run (the
+first blocks have 32, 64, ... pings, so little preparation precedes the first launch); at
+most two blocks of signals are alive (≈ 50 MB each for 608-sample pings at R = 5).
 """
 from __future__ import annotations
 
@@ -53,6 +54,7 @@ from .grid import Grid
 PINGS_PER_LAUNCH = 16          # unrolled pings per kernel (8, 16, 32 measured alike)
 LOOP_PINGS_PER_LAUNCH = 64     # pings per symbolic-loop launch on the CPU (cache-sized)
 PINGS_PER_BLOCK = 1024         # pings whose signals are prepared and uploaded together
+FIRST_BLOCK = 32               # the first block; the next ones double up to PINGS_PER_BLOCK
 MAX_VOXELS_PER_LAUNCH = 1 << 23
 BRICK = (4, 4, 4)              # lane order: voxel bricks (None = C order, the pre-brick layout)
 INTERPOLATIONS = interp.MODES
@@ -231,9 +233,13 @@ def backproject(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = 
     consts = ping_constants(dataset, upsample, per_ping_sound_speed, tx_beam_mask)
 
     def blocks():
-        for b0 in range(0, n_pings, PINGS_PER_BLOCK):
-            pings = np.arange(b0, min(b0 + PINGS_PER_BLOCK, n_pings))
-            yield upsampled_signals(dataset, pings, upsample, incoherent)
+        # Blocks of 32, 64, ... up to PINGS_PER_BLOCK pings: only the first block's preparation
+        # precedes the kernels; each next one is prepared while the previous block's run.
+        b0, size = 0, FIRST_BLOCK
+        while b0 < n_pings:
+            b1 = min(b0 + size, n_pings)
+            yield upsampled_signals(dataset, np.arange(b0, b1), upsample, incoherent)
+            b0, size = b1, min(2 * size, PINGS_PER_BLOCK)
 
     return delay_and_sum(blocks(), consts, grid, n_t * upsample, interpolation=interpolation,
                          masked=tx_beam_mask is not None, progress=progress, loop=loop,
