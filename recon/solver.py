@@ -169,8 +169,8 @@ NETWORK_DEFAULTS = dict(lr=1e-2, lr_final=1e-3, lr_units="absolute", init="rando
 # Named sets. 'cpu'/'reference': sampling and network sizes; 'sim'/'airsas': the reference's
 # per-scene priors (scripts of the paper's code, §4.8 of the method description).
 PRESETS = {
-    "cpu": dict(pings_per_iteration=5, bins_per_ping=64, n_rays=600, hash_levels=12,
-                mlp_width=32, mlp_hidden=2, iterations=800),
+    "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
+                hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
                       hash_log2_size=15, mlp_width=128, mlp_hidden=3),
     "sim": dict(bins_per_ping=110, scale_factor=10.0, lambertian=True, occlusion_scale=500.0,

@@ -50,7 +50,9 @@ def test_point_scatterer_peak_within_one_voxel(gd_run, grid):
 def test_loss_falls(gd_run):
     _, losses = gd_run
     assert len(losses) == 200
-    assert losses[-30:].mean() < 0.6 * losses[:10].mean()
+    # Measured 0.275 (data loss of the last 30 over the first 10 steps); 0.35 leaves room
+    # for float32 noise, not for a solver that only half works.
+    assert losses[-30:].mean() < 0.35 * losses[:10].mean()
 
 
 def test_data_residual_below_optimally_scaled_backprojection(gd_run, point_ds, grid):
@@ -77,8 +79,9 @@ def test_data_residual_below_optimally_scaled_backprojection(gd_run, point_ds, g
     alpha = np.vdot(a_bp, s) / np.vdot(a_bp, a_bp)
     r_bp = np.linalg.norm(alpha * a_bp - s) / np.linalg.norm(s)
     r_gd = residual(vol.volume)
-    assert r_gd < r_bp
-    assert r_gd < 0.8
+    # Measured: r_bp 0.758, r_gd 0.668.
+    assert 0.74 < r_bp < 0.78
+    assert r_gd < 0.9 * r_bp and r_gd < 0.70
 
 
 def test_checkpoint_resume_continues_the_same_run(point_ds, tmp_path):
