@@ -134,6 +134,11 @@ def test_out_naming_a_directory_is_refused_up_front(ds_file, tmp_path, capsys):
     target.mkdir()
     assert _bp(ds_file, target, "--force") == 2
     assert "is a directory" in one_line_error(capsys)
+    start = time.perf_counter()           # simulate: refused before rendering anything
+    assert sonarsim_main(["simulate", "sphere", "--poses", "cylindrical:2:1", "--out",
+                          str(target), "--no-progress"]) == 2
+    assert "is a directory" in one_line_error(capsys)
+    assert time.perf_counter() - start < 10
 
 
 def test_second_writer_fails_at_once(ds_file, tmp_path, capsys):

@@ -212,17 +212,17 @@ class SafeUnpickler(pickle._Unpickler):
     def _checked(self, what: str, op):
         """Run opcode function ``op`` after the checks for ``what`` (see _CONTAINER_OPS)."""
         stack = self.stack
-        if what in ("setitem",):
+        if what == "setitem":
             self._check_keys([stack[-2]])
-        elif what in ("setitems", "dict"):
+        elif what == "setitems":
             self._check_keys(stack[0::2])
-        elif what in ("additems",):
+        elif what == "additems":
             self._check_keys(stack)
-        elif what == "mark" and self.metastack is not None:
-            pass
         target = None
-        if what in ("append", "setitem"):
-            target, children = stack[-3 if what == "setitem" else -2], stack[-2 if what == "setitem" else -1:]
+        if what == "append":
+            target, children = stack[-2], stack[-1:]
+        elif what == "setitem":
+            target, children = stack[-3], stack[-2:]
         elif what in ("appends", "setitems", "additems"):
             target, children = self.metastack[-1][-1], list(stack)
         elif what == "mark":
