@@ -492,20 +492,15 @@ class DelayOperator(LinearOperator):
         self.ishape, self.oshape = tuple(grid.shape), (n, t)
 
     def _forward(self, x):
+        from . import interp
         n, t = self.oshape
         pts = self.grid.points()
         flat = np.asarray(x, dtype=np.complex128).ravel()
-        y = np.zeros((n, t + 1), dtype=np.complex128)
+        y = np.zeros((n, t), dtype=np.complex128)
         for i, q in enumerate(self.consts.astype(np.float64)):
             path = np.linalg.norm(pts - q[0:3], axis=1) + np.linalg.norm(pts - q[3:6], axis=1)
-            u = path * q[6] + q[7]
-            ok = (u >= 0) & (u <= t - 1)
-            k = np.floor(u[ok]).astype(np.int64)
-            f = u[ok] - k
-            for idx, w in ((k, 1 - f), (k + 1, f)):
-                y[i] += (np.bincount(idx, w * flat[ok].real, t + 1)
-                         + 1j * np.bincount(idx, w * flat[ok].imag, t + 1))
-        return y[:, :t]
+            y[i] = interp.tent_scatter(path * q[6] + q[7], flat, t)
+        return y
 
     def _adjoint(self, y):
         from . import backprojection

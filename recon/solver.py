@@ -65,7 +65,7 @@ class SolverSettings:
     beamwidth_deg: float = 30.0
     sampling_uniformity: float = 1.0
     scale_factor: float = 10.0
-    data: str = "matched"
+    data: str = "auto"
     incoherent: bool = False
     lambertian: bool = True
     occlusion_scale: float = 500.0
@@ -202,8 +202,10 @@ def settings_for(preset: str | None = None, network: bool = False, **overrides) 
 # Targets and sampling
 
 def target_kind(dataset, settings: SolverSettings) -> str:
-    """The kind of data fitted: 'auto' resolves to 'deconvolved' for a deconvolved dataset."""
-    deconvolved = bool(getattr(dataset, "meta", {}).get("deconvolved", False))
+    """The kind of data fitted: 'auto' resolves to 'deconvolved' for a deconvolved dataset
+    (``recon deconvolve``), else 'matched'. 'matched' and 'analytic' of a deconvolved dataset
+    are its stored signals: the matched-filter ablation runs on the original dataset."""
+    deconvolved = measurements.is_deconvolved(dataset)
     if settings.data == "auto":
         return "deconvolved" if deconvolved else "matched"
     if settings.data == "deconvolved" and not deconvolved:
@@ -218,8 +220,7 @@ def targets(dataset, settings: SolverSettings) -> np.ndarray:
     if kind == "matched":
         s = measurements.matched_filtered(dataset)
     elif kind == "deconvolved":
-        deconv = getattr(measurements, "deconvolved", None)
-        s = deconv(dataset) if deconv is not None else np.asarray(dataset.waveforms, np.complex64)
+        s = measurements.complex_signals(dataset)
     else:
         s = measurements.analytic_waveforms(dataset)
     peak = float(np.abs(s).max())
