@@ -211,6 +211,9 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"sonar_transient: path_samples must be in 1..64, "
                              f"got {self.path_samples}")
         self.vertex_spread = float(props.get("vertex_spread", DEFAULT_VERTEX_SPREAD))
+        self.facet_paths = int(props.get("facet_paths", 1))
+        if not 1 <= self.facet_paths <= 16:
+            raise ValueError(f"sonar_transient: facet_paths must be in 1..16, got {self.facet_paths}")
         self.guide_fraction = float(props.get("guide_fraction", DEFAULT_GUIDE_FRACTION))
         if not 0.0 <= self.guide_fraction < 1.0:
             raise ValueError(f"sonar_transient: guide_fraction must be in [0, 1), "
@@ -456,8 +459,12 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             else:
                 active &= ~scene.ray_test(ray, active)
         if self.max_bounces > 1:
-            self._facet_paths(scene, hists, ctx, pose, half, p, n_geo, n_sh, rho, cos_i, r_t,
-                              g_t * weight, phase, corners, lit, key, sid, p_tx, p_rx, b_rx)
+            k = self.facet_paths
+            for j in range(k):   # k continuations per point, the first direction stratified
+                self._facet_paths(scene, hists, ctx, pose, half, p, n_geo, n_sh, rho, cos_i,
+                                  r_t, g_t * (weight / k), phase, corners, lit,
+                                  key ^ (0x632BE5AB * j & 0xFFFFFFFF), sid, p_tx, p_rx, b_rx,
+                                  (j, k))
         slot = half if ctx["halves"] else UInt32(0)
         values = [value]
         if self.complex_output:
@@ -479,7 +486,8 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
 
     # ------------------------------------------------------------------ bounces >= 2
     def _facet_paths(self, scene, hists, ctx, pose, half, p, n_geo, n_sh, albedo, cos_in, r_t,
-                     tx_weight, phase, corners, active, key, sid, p_tx, p_rx, b_rx):
+                     tx_weight, phase, corners, active, key, sid, p_tx, p_rx, b_rx,
+                     stratum=(0, 1)):
         """Bounces 2…B from the surface points: one path per lit stratum point x₁.
 
         x₁ carries the TX's transfer b_T cosθ_i dA / r_T² (intensity; a_T dA / r_T for
@@ -490,6 +498,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         """
         Float = mi.Float
         intensity = self.amplitude == "intensity"
+        active = mi.Bool(active)          # a copy: the in-place &= below must not reach the caller
         rng = mi.PCG32(1, mi.sample_tea_64(key, sid), mi.sample_tea_64(sid, key ^ 0x5bd1e995))
         slot = half if ctx["halves"] else mi.UInt32(0)
         guide = self._guide(scene)
@@ -501,6 +510,8 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         for bounce in range(1, self.max_bounces):
             u_pick = rng.next_float32()
             u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+            if bounce == 1 and stratum[1] > 1:
+                u2.x = (stratum[0] + u2.x) * (1.0 / stratum[1])
             d_new, inv_pdf = self._continuation(prev_p, n_sh_v, u_pick, u2, guide)
             cos_new = dr.dot(d_new, n_sh_v)
             active &= (dr.dot(d_new, n_geo_v) > 0.0) & (cos_new > 0.0)
