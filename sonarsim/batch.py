@@ -822,7 +822,7 @@ class _Table:
         for job in plan.jobs:
             row = {"job": job.name, "status": "pending", "output": job.output, "wall_s": None,
                    "error": "", "job_id": job.job_id,
-                   **{k: job.params.get(k) for k in _param_columns(plan.jobs)}}
+                   **{("param", k): job.params.get(k) for k in _param_columns(plan.jobs)}}
             for step in job.recon:
                 row[f"{step.label}_output"] = step.output
             self.rows[job.name] = row
@@ -838,6 +838,7 @@ class _Table:
                 row[key] = value
                 if key not in self.fidelity_keys:
                     self.fidelity_keys.append(key)
+                    self.fidelity_keys.sort(key=lambda k: (k != "mc_snr_db", k))
         for label, (step_status, metrics, wall) in steps.items():
             row[f"{label}_status"] = step_status
             row[f"{label}_wall_s"] = wall if wall is not None else (
@@ -855,17 +856,21 @@ class _Table:
             return
         from .atomic import atomic_path
         columns = ["job", "status", "output", "wall_s"] + self.fidelity_keys + ["error"]
-        columns += _param_columns(self.plan.jobs) + ["job_id"]
+        params = _param_columns(self.plan.jobs)
+        # a setting named like a measured value (mc_snr_db: the target) gets its own column
+        header = {("param", k): (f"{k}_requested" if k in self.fidelity_keys else k)
+                  for k in params}
+        columns += list(header) + ["job_id"]
         extra = []
         for row in self.rows.values():
             extra += [k for k in row if k not in columns and k not in extra
                       and k not in self.metric_keys]
         columns += sorted(extra) + self.metric_keys
         buf = io.StringIO()
-        w = csv.DictWriter(buf, columns, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow([header.get(k, k) for k in columns])
         for row in self.rows.values():
-            w.writerow({k: _cell(row.get(k)) for k in columns})
+            w.writerow([_cell(row.get(k)) for k in columns])
         self.plan.out.mkdir(parents=True, exist_ok=True)
         with atomic_path(self.path) as tmp:
             tmp.write_text(buf.getvalue())

@@ -51,9 +51,10 @@ class Task:
     """One unit of work.
 
     ``fn(*args, *needed_results, **kwargs)`` runs on a worker; ``fn`` must be importable there
-    (a module-level function). ``needs``: keys of tasks whose results are appended to ``args``
-    (the task waits for them). ``job``: the job it belongs to; progress counts jobs, a job
-    being finished when all its tasks are.
+    (a module-level function, or one Dask can pickle by value, such as a script's). ``needs``:
+    keys of tasks that must succeed first; their results are appended to ``args`` unless
+    ``pass_needed`` is false. ``job``: the job it belongs to; progress counts jobs, a job being
+    finished when all its tasks are.
     """
     key: str
     fn: Callable
@@ -61,6 +62,7 @@ class Task:
     kwargs: Mapping = field(default_factory=dict)
     needs: tuple[str, ...] = ()
     job: str = ""
+    pass_needed: bool = True
 
     @property
     def job_name(self) -> str:
@@ -97,7 +99,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def run_task(fn: Callable, args: tuple, kwargs: Mapping, threads: int | None,
-             variant: str | None, *needed: _Returned) -> _Returned:
+             variant: str | None, pass_needed: bool, *needed: _Returned) -> _Returned:
     """Worker-side wrapper of a task: variant and Dr.Jit threads, then ``fn``, timed.
 
     A failed needed task makes this one fail without running. A :class:`SonarsimError`
@@ -114,7 +116,8 @@ def run_task(fn: Callable, args: tuple, kwargs: Mapping, threads: int | None,
             runtime.set_variant(variant)
         from .threads import dr_threads
         with dr_threads(threads):
-            value = fn(*args, *(d.value for d in needed), **dict(kwargs))
+            passed = tuple(d.value for d in needed) if pass_needed else ()
+            value = fn(*args, *passed, **dict(kwargs))
     except SonarsimError as exc:
         return _Returned(False, error=_one_line(exc), wall_s=time.perf_counter() - t0)
     return _Returned(True, value=value, wall_s=time.perf_counter() - t0)
@@ -386,7 +389,7 @@ class Engine:
             for attempt in range(self.retries + 1):
                 try:
                     got = run_task(t.fn, t.args, t.kwargs, self.task_threads, self.variant,
-                                   *needed)
+                                   t.pass_needed, *needed)
                     break
                 except Exception as exc:       # a bug or a resource problem: retried
                     got = _Returned(False, error=_one_line(exc))
@@ -402,7 +405,7 @@ class Engine:
         futures, by_future = {}, {}
         for t in ordered:
             fut = client.submit(run_task, t.fn, t.args, dict(t.kwargs), self.task_threads,
-                                self.variant, *[futures[k] for k in t.needs],
+                                self.variant, t.pass_needed, *[futures[k] for k in t.needs],
                                 key=f"{_key_prefix(t.key)}-{token}", retries=self.retries,
                                 pure=False)
             futures[t.key] = fut
