@@ -41,14 +41,18 @@ def check_output(path: str | os.PathLike, *, force: bool = False, option: str = 
                  exists_ok: bool = False) -> Path:
     """Validate an output file path before any work (one-line :class:`InputError`).
 
-    Refuses a directory, a missing parent directory and (unless ``force`` or
-    ``exists_ok``) an existing file.
+    Refuses a directory, a parent that is not a directory and (unless ``force`` or
+    ``exists_ok``) an existing file. A missing parent directory is created later by the
+    lock (as the atomic writers always did).
     """
     p = Path(path)
     if p.is_dir():
         raise InputError(f"{option} {p}: is a directory, expected a file name")
-    if not p.parent.is_dir():
-        raise InputError(f"{option} {p}: output directory {p.parent} does not exist")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"{option} {p}: {parent} is not a directory")
+            break
     if p.exists() and not (force or exists_ok):
         raise InputError(f"{option} {p}: file exists; pass --force to replace it")
     return p
@@ -65,6 +69,11 @@ def output_lock(path: str | os.PathLike) -> Iterator[Path]:
     if fcntl is None:  # pragma: no cover
         yield lock
         return
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot create the output directory ({exc.strerror})") \
+            from None
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)

@@ -437,3 +437,34 @@ def test_gd_refuses_a_huge_grid_before_allocating(ds_file, tmp_path, capsys):
                        "--shape", "2000", "2000", "2000", "--no-progress"]) == 2
     assert time.perf_counter() - start < 30
     assert "GiB (2000 x 2000 x 2000 voxels" in one_line_error(capsys)
+
+
+def test_output_in_a_new_directory_is_still_created(ds_file, tmp_path):
+    out = tmp_path / "new" / "sub" / "v.h5"
+    assert _bp(ds_file, out) == 0
+    assert Volume.read(out).shape == (5, 5, 5)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["v.h5"]
+
+
+def test_simulate_while_another_simulate_writes_the_same_output(tmp_path, capsys):
+    """The issue's race: a second run on the same --out fails at once, the first is unharmed."""
+    out = tmp_path / "d.h5"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "sonarsim.cli", "simulate", "sphere", "--poses", "cylindrical:30:2",
+         "--paths-per-pose", "4000", "--snr-db", "20", "--no-progress", "--out", str(out)],
+        stderr=subprocess.PIPE, text=True)
+    try:
+        lock = outputs.lock_path(out)
+        deadline = time.time() + 60
+        while not lock.exists() and first.poll() is None and time.time() < deadline:
+            time.sleep(0.05)
+        assert lock.exists(), "the first run never took the lock"
+        assert sonarsim_main(SIM + ["--out", str(out), "--snr-db", "20"]) == 2
+        assert "another process is writing this output" in one_line_error(capsys)
+        assert first.wait(timeout=240) == 0, first.stderr.read()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert SonarDataset.read(out).n_pings == 60
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.h5"]     # no scratch left behind
