@@ -147,31 +147,33 @@ def main(argv=None) -> int:
         rows.append((name, wall, cpu, n_vp / wall, n_vp / cpu if cpu > 0 else float("nan"),
                      peak_rss_mb() if rss is None else rss))
 
-    forms = [("backproject (auto)", {})]
-    if not args.no_variants:
-        forms += [("backproject unrolled C-order", {"loop": "unrolled", "brick": None}),
-                  ("backproject symbolic loop", {"loop": "symbolic"})]
-    for name, kw in forms:
-        bp.backproject(ds.select(np.arange(16)), g, progress=False, **kw)      # compile
-    # Interleaved repeats: load changes on a shared machine hit every form alike.
-    runs = {name: [] for name, _ in forms}
-    for _ in range(args.repeat):
-        for name, kw in forms:
-            runs[name].append(timed(lambda: bp.backproject(ds, g, progress=False, **kw))[1:])
-    for name, _ in forms:
-        wall, cpu = np.median(np.array(runs[name]), axis=0)
-        row(name, wall, cpu)
-        best_cpu[name] = min(c for _, c in runs[name])
-
     blocks, prep_wall, prep_cpu = timed(lambda: [
         bp.upsampled_signals(ds, np.arange(b, min(b + bp.PINGS_PER_BLOCK, args.pings)), 5, False)
         for b in range(0, args.pings, bp.PINGS_PER_BLOCK)], sync=False)
     consts = bp.ping_constants(ds, 5)
     n_up = blocks[0].shape[1]
-    _, wall, cpu = timed(lambda: bp.delay_and_sum(iter(blocks), consts, g, n_up))
-    row("kernel only (delay_and_sum)", wall, cpu)
+    forms = [("backproject (auto)", lambda: bp.backproject(ds, g, progress=False))]
+    if not args.no_variants:
+        forms += [("backproject unrolled C-order",
+                   lambda: bp.backproject(ds, g, progress=False, loop="unrolled", brick=None)),
+                  ("backproject symbolic loop",
+                   lambda: bp.backproject(ds, g, progress=False, loop="symbolic"))]
+    forms += [("kernel only (delay_and_sum)",
+               lambda: bp.delay_and_sum(iter(blocks), consts, g, n_up))]
+    bp.backproject(ds.select(np.arange(16)), g, progress=False)                # compile
+    if not args.no_variants:
+        bp.backproject(ds.select(np.arange(16)), g, progress=False, loop="symbolic")
+    # Interleaved repeats: load changes on a shared machine hit every form alike.
+    runs = {name: [] for name, _ in forms}
+    for _ in range(args.repeat):
+        for name, fn in forms:
+            runs[name].append(timed(fn)[1:])
+    for name, _ in forms:
+        wall, cpu = np.median(np.array(runs[name]), axis=0)
+        row(name, wall, cpu)
+        best_cpu[name] = min(c for _, c in runs[name])
     row("  signal preparation alone", prep_wall, prep_cpu)
-    del blocks
+    del blocks, forms
 
     if not args.no_cli:
         with tempfile.TemporaryDirectory() as tmp:
@@ -214,7 +216,7 @@ def main(argv=None) -> int:
         print(f"{name:<34}{wall:>8.2f}{cpu:>8.2f}{rate / 1e6:>9.0f}{cpu_rate / 1e6:>11.0f}"
               f"{rate / np_rate:>9.1f}{rss:>8.0f}")
     ref = rows[0]
-    print(f"(median of {args.repeat} interleaved runs for the backproject rows; best "
+    print(f"(median of {args.repeat} interleaved runs for the rows above the preparation; best "
           f"Mvp/CPU-s: " + ", ".join(f"{k} {vp / c / 1e6:.0f}" for k, c in best_cpu.items()) + ")")
     print(f"idle-machine estimate for {ref[0]}: {ref[4] * os.cpu_count() / 1e9:.2f}e9 vp/s "
           f"(median per CPU-second x {os.cpu_count()} cores), "
