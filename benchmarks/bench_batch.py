@@ -79,6 +79,7 @@ def run_config(config: str, manifest: Path, out: Path, cores: int) -> dict:
     with open(result.csv, newline="") as fh:
         walls = [float(r["wall_s"]) for r in csv.DictReader(fh) if r["wall_s"]]
     return {"config": config, "where": described, "jobs": len(plan.jobs), "wall_s": wall,
+            "busy_s": sum(walls),
             "startup_s": startup,
             "jobs_per_hour": 3600 * len(plan.jobs) / wall,
             "median_job_s": statistics.median(walls) if walls else float("nan"),
@@ -118,8 +119,8 @@ def main(argv=None) -> int:
             row = run_config(config, manifest, tmp / config, cores)
             rows.append(row)
             print(f"{config:>14}: {row['wall_s']:7.1f} s, {row['jobs_per_hour']:8.0f} jobs/h, "
-                  f"median job {row['median_job_s']:.2f} s on its worker, start-up "
-                  f"{row['startup_s']:.1f} s  [{row['where']}]",
+                  f"median job {row['median_job_s']:.2f} s on its worker (sum {row['busy_s']:.1f} s), "
+                  f"start-up {row['startup_s']:.1f} s  [{row['where']}]",
                   flush=True)
         last = rows[-1]
         t0 = time.perf_counter()

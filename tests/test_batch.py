@@ -350,3 +350,27 @@ def _double(x):
 
 def _fail(message):
     raise InputError(message)
+
+
+def test_cli_submits_to_an_existing_scheduler(client, tmp_path, capsys):
+    manifest = write_manifest(tmp_path / "m.toml", '[[sweep]]\nscene = "sphere"\nseed = [1, 2]\n')
+    args = ["batch", str(manifest), "--out", str(tmp_path / "out"), "--scheduler",
+            client.scheduler.address, "--threads", "1", "--no-progress"]
+    assert cli_main(args) == 0
+    err = capsys.readouterr().err
+    assert f"Dask scheduler {client.scheduler.address}" in err and "dashboard" in err
+    assert "2 done, 0 skipped" in err
+    rows = read_csv(tmp_path / "out" / "batch.csv")
+    assert sorted(rows) == ["sphere_seed-1", "sphere_seed-2"]
+    assert all(r["status"] == "done" for r in rows.values())
+
+
+def test_job_id_follows_the_mesh_contents_not_its_name(tmp_path, mesh_dir):
+    mesh = tmp_path / "part.obj"
+    mesh.write_bytes((mesh_dir / "ball0.obj").read_bytes())
+    manifest = write_manifest(tmp_path / "m.toml", f'[[job]]\nmesh = "{mesh}"\nfit = false\n')
+    first = batch.plan_batch(manifest, tmp_path / "out").jobs[0]
+    assert batch.plan_batch(manifest, tmp_path / "out").jobs[0].job_id == first.job_id
+    mesh.write_bytes((mesh_dir / "ball1.obj").read_bytes())       # same path, other sphere
+    second = batch.plan_batch(manifest, tmp_path / "out").jobs[0]
+    assert second.name == first.name and second.job_id != first.job_id
