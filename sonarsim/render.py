@@ -199,7 +199,7 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
         raise InputError(f"chunk_size {chunk_size} exceeds 2^32 lanes or bins per launch; "
                          f"use at most {most}")
     chunk_size = int(chunk_size)
-    if halves and paths_per_pose < 2 and (bounces > 1 or props.get("bounce1") == "cone"):
+    if halves and paths_per_pose < 2 and props.get("bounce1") == "cone":
         raise InputError("two half-estimates need paths_per_pose >= 2")
     integrator = make_integrator(bounces, beams, bounce1=bounce1, amplitude=amplitude,
                                  surface_spacing=surface_spacing, speckle_seed=speckle_seed)
@@ -227,7 +227,8 @@ def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 
     """Render energy transients [N, bounces, T] for every pose of ``poses``.
 
     scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
-    paths_per_pose: Monte-Carlo paths per pose. bounces: histograms for bounces 1…B.
+    paths_per_pose: TX-cone Monte-Carlo paths per pose (only with bounce1="cone"; the
+    surface estimator samples every bounce from its facets). bounces: histograms for bounces 1…B.
     fs (Hz), oversample, sound_speed (m/s): bin width sound_speed / (fs · oversample) m.
     path_range: (LMIN, LMAX) round-trip metres (path_start = LMIN), else the crop window of
     ``box`` (default: the scene's bounding box) and the poses, aligned so that bin centres
