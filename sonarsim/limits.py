@@ -84,6 +84,9 @@ def memory_limit() -> tuple[int | None, str]:
 
 
 def gib(nbytes: float) -> str:
+    """A size for messages: GiB, or MiB below 1 GiB."""
+    if nbytes < 2**30:
+        return f"{nbytes / 2**20:.1f} MiB"
     return f"{nbytes / 2**30:.1f} GiB"
 
 

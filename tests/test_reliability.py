@@ -65,7 +65,7 @@ def _variant(ds: SonarDataset, **changes) -> SonarDataset:
     (["--shape", "2000", "2000", "2000"], "GiB (2000 x 2000 x 2000 voxels"),
     (["--voxel-size", "1e-6"], "GiB ("),
     (["--voxel-size", "1e-300"], "more than 10^12 voxels"),
-    (["--max-memory", "1M", "--shape", "64", "64", "64"], "but --max-memory is 0.0 GiB"),
+    (["--max-memory", "1M", "--shape", "64", "64", "64"], "needs 13.0 MiB (64 x 64 x 64 voxels x 52 bytes) but --max-memory is 1.0 MiB"),
     (["--max-memory", "lots"], "--max-memory: expected a size"),
     (["--bounds", "50", "51", "50", "51", "50", "51"], "no voxel of the grid lies within"),
     (["--threads", "0"], "--threads must be >= 1"),
