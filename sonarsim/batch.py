@@ -881,6 +881,13 @@ def run_batch(plan: Plan, engine, *, progress: bool = True,
               log: Callable[[str], None] = print) -> BatchResult:
     """Run every job of ``plan`` that is not complete yet on ``engine`` (a
     :class:`sonarsim.batch_engine.Engine`); record every job in ``DIR/batch.csv``."""
+    from .outputs import output_lock
+    plan.out.mkdir(parents=True, exist_ok=True)
+    with output_lock(plan.out / CSV_NAME):      # one batch per DIR at a time
+        return _run_batch(plan, engine, progress, log)
+
+
+def _run_batch(plan: Plan, engine, progress: bool, log: Callable[[str], None]) -> BatchResult:
     from .batch_engine import Task
     table = _Table(plan)
     tasks: list[Task] = []

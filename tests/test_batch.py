@@ -374,3 +374,15 @@ def test_job_id_follows_the_mesh_contents_not_its_name(tmp_path, mesh_dir):
     mesh.write_bytes((mesh_dir / "ball1.obj").read_bytes())       # same path, other sphere
     second = batch.plan_batch(manifest, tmp_path / "out").jobs[0]
     assert second.name == first.name and second.job_id != first.job_id
+
+
+def test_one_batch_per_directory(tmp_path):
+    from sonarsim.outputs import OutputBusyError, output_lock
+    manifest = write_manifest(tmp_path / "m.toml", '[[job]]\nscene = "sphere"\n')
+    plan = batch.plan_batch(manifest, tmp_path / "out", log=lambda s: None)
+    (tmp_path / "out").mkdir()
+    with output_lock(tmp_path / "out" / batch.CSV_NAME):          # another batch runs there
+        with pytest.raises(OutputBusyError):
+            batch.run_batch(plan, Engine("sequential", log=lambda s: None), progress=False,
+                            log=lambda s: None)
+    assert not Path(plan.jobs[0].output).exists()

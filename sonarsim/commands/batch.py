@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 HELP = "Run a manifest of many simulations (sweeps, mesh sets) on dask.distributed."
+OUTPUTS = ()    # --out is a directory; each job locks its own outputs, run_batch locks DIR
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
