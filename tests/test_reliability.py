@@ -6,8 +6,6 @@ checks the one-line refusal or the right result.
 """
 from __future__ import annotations
 
-import os
-import pickle
 import subprocess
 import sys
 import time
@@ -19,7 +17,7 @@ import pytest
 
 from recon import synthetic
 from recon.cli import main as recon_main
-from sonarsim import limits, outputs
+from sonarsim import outputs
 from sonarsim.cli import main as sonarsim_main
 from sonarsim.dataset import SonarDataset, Volume
 from sonarsim.errors import FormatError, InputError
@@ -468,3 +466,17 @@ def test_simulate_while_another_simulate_writes_the_same_output(tmp_path, capsys
             first.wait()
     assert SonarDataset.read(out).n_pings == 60
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.h5"]     # no scratch left behind
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("8G", 8 * 2**30), ("512M", 512 * 2**20), ("1.5GiB", int(1.5 * 2**30)), ("2e9", 2 * 10**9),
+    ("100k", 102400)])
+def test_max_memory_sizes(text, expected):
+    from sonarsim import limits
+    assert limits.parse_size(text) == expected
+
+
+def test_max_memory_from_the_environment(ds_file, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SONARSIM_MAX_MEMORY", "100k")
+    assert _bp(ds_file, tmp_path / "v.h5") == 2
+    assert "but SONARSIM_MAX_MEMORY is 0.1 MiB" in one_line_error(capsys)
