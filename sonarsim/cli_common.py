@@ -102,6 +102,13 @@ def _output_paths(args: argparse.Namespace) -> list:
     return paths
 
 
+def _check_seed(args: argparse.Namespace) -> None:
+    """Every command's ``--seed`` must fit NumPy's and Dr.Jit's generators: [0, 2^32)."""
+    seed = getattr(args, "seed", None)
+    if isinstance(seed, int) and not 0 <= seed < 2**32:
+        raise InputError(f"--seed must be in [0, 2^32), got {seed}")
+
+
 @contextlib.contextmanager
 def _thread_count(threads):
     """Dr.Jit runs on ``threads`` worker threads inside (None: unchanged)."""
@@ -130,6 +137,7 @@ def run_main(prog: str, package: str, description: str, argv=None) -> int:
         if args.variant:
             runtime.set_variant(args.variant)
         limits.set_max_memory(getattr(args, "max_memory", None))
+        _check_seed(args)
         paths = _output_paths(args)
         threads = getattr(args, "threads", None) if "recon" in package else None
         with outputs.output_locks(paths), _thread_count(threads):

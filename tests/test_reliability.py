@@ -480,3 +480,11 @@ def test_max_memory_from_the_environment(ds_file, tmp_path, capsys, monkeypatch)
     monkeypatch.setenv("SONARSIM_MAX_MEMORY", "100k")
     assert _bp(ds_file, tmp_path / "v.h5") == 2
     assert "but SONARSIM_MAX_MEMORY is 0.1 MiB" in one_line_error(capsys)
+
+
+def test_negative_seed_is_one_line_for_every_command(ds_file, tmp_path, capsys):
+    vol = tmp_path / "v.h5"
+    assert _bp(ds_file, vol) == 0
+    assert recon_main(["evaluate", str(vol), "--gt", "sphere", "--no-images", "--no-sweep",
+                       "--seed", "-1"]) == 2
+    assert "--seed must be in [0, 2^32), got -1" in one_line_error(capsys)
