@@ -58,6 +58,8 @@ def _variant(ds: SonarDataset, **changes) -> SonarDataset:
 @pytest.mark.parametrize("extra, message", [
     (["--pings", "0:10:0"], "STEP must be a positive integer"),
     (["--pings", "0:10:-1"], "STEP must be a positive integer"),
+    (["--pings", "99"], "ping 99 does not exist (the dataset has 24: 0 .. 23)"),
+    (["--pings=-99"], "ping -99 does not exist"),
     (["--upsample", "100000"], "--upsample must be an integer in 1..1024"),
     (["--shape", "10000", "10000", "10000"], "the volume needs 48428.8 GiB"),
     (["--shape", "2000", "2000", "2000"], "GiB (2000 x 2000 x 2000 voxels"),

@@ -43,7 +43,11 @@ def parse_slice(text: str | None, n: int) -> np.ndarray | None:
     parts = text.split(":")
     try:
         if len(parts) == 1:
-            return np.array([int(parts[0])])
+            index = int(parts[0])
+            if not -n <= index < n:
+                raise InputError(f"--pings {text!r}: ping {index} does not exist (the dataset "
+                                 f"has {n}: 0 .. {n - 1})")
+            return np.array([index % n])
         if len(parts) > 3:
             raise ValueError
         args = [int(p) if p.strip() else None for p in parts]
@@ -159,7 +163,8 @@ def _grid(args, dataset) -> Grid:
         shape = tuple(args.shape)
     else:
         if not (np.isfinite(args.voxel_size) and args.voxel_size > 0):
-            raise InputError(f"--voxel-size: must be positive, got {args.voxel_size}")
+            raise InputError(f"--voxel-size: must be a positive finite number, got "
+                             f"{args.voxel_size}")
         counts = [(hi - lo) / args.voxel_size for lo, hi in bounds]
         if not all(np.isfinite(n) and n < 1e12 for n in counts):
             raise InputError(f"--voxel-size {args.voxel_size:g} gives more than 10^12 voxels "
