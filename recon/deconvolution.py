@@ -152,35 +152,58 @@ def wiener(waveforms, pulse, lam: float | None = None) -> tuple[np.ndarray, dict
 
 # ---- INR: loss and its gradient (NumPy) ---------------------------------------------------
 
-def convolve(w: np.ndarray, pulse: np.ndarray) -> np.ndarray:
-    """ŝ = (w ∗ p)[.., :T]: linear convolution of rows w [.., T] with the pulse, cropped."""
+def pulse_band(pulse: np.ndarray, n_t: int, band_db: float) -> np.ndarray | None:
+    """rfft-bin mask [n//2+1] (n = the linear-convolution FFT size for T = ``n_t``) of the
+    frequencies where |P(f)|² is within ``band_db`` dB of its peak; None if ``band_db`` is
+    infinite (the full band)."""
+    if math.isinf(band_db):
+        return None
+    p2 = np.abs(scipy.fft.rfft(pulse, n=_n_fft(n_t, pulse.size))) ** 2
+    return (p2 >= p2.max() * 10 ** (-band_db / 10)).astype(np.float64)
+
+
+def bandpass(x: np.ndarray, band: np.ndarray | None, n_p: int) -> np.ndarray:
+    """Rows x [.., T] through the zero-phase FFT band-pass ``band`` (see :func:`pulse_band`;
+    ``n_p`` the pulse length that fixed its FFT size), cropped back to T."""
+    if band is None:
+        return x
+    n_t = x.shape[-1]
+    n = _n_fft(n_t, n_p)
+    return scipy.fft.irfft(scipy.fft.rfft(x, n=n, axis=-1) * band, n=n, axis=-1)[..., :n_t]
+
+
+def convolve(w: np.ndarray, pulse: np.ndarray, band: np.ndarray | None = None) -> np.ndarray:
+    """ŝ = (w ∗ p)[.., :T]: linear convolution of rows w [.., T] with the pulse, cropped;
+    with ``band`` (:func:`pulse_band`) the pulse is band-passed first."""
     n_t = w.shape[-1]
     n = _n_fft(n_t, pulse.size)
-    return scipy.fft.irfft(scipy.fft.rfft(w, n=n, axis=-1) * scipy.fft.rfft(pulse, n=n),
-                           n=n, axis=-1)[..., :n_t]
+    spec = scipy.fft.rfft(pulse, n=n) * (1.0 if band is None else band)
+    return scipy.fft.irfft(scipy.fft.rfft(w, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
 
 
-def correlate(g: np.ndarray, pulse: np.ndarray) -> np.ndarray:
+def correlate(g: np.ndarray, pulse: np.ndarray, band: np.ndarray | None = None) -> np.ndarray:
     """The adjoint of :func:`convolve`: (Σ_j p[j]·g[k + j]) for k < T."""
     n_t = g.shape[-1]
     n = _n_fft(n_t, pulse.size)
-    return scipy.fft.irfft(scipy.fft.rfft(g, n=n, axis=-1) *
-                           np.conj(scipy.fft.rfft(pulse, n=n)), n=n, axis=-1)[..., :n_t]
+    spec = np.conj(scipy.fft.rfft(pulse, n=n)) * (1.0 if band is None else band)
+    return scipy.fft.irfft(scipy.fft.rfft(g, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
 
 
 def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: float,
-             phase: float, eps: float = 1e-6) -> tuple[float, dict, np.ndarray]:
-    """Loss of the reference's deconvolution (REFERENCE_SPEC-equivalent: reference code
-    ``deconvolve_measurements.py``) and its gradient with respect to w.
+             phase: float, eps: float = 1e-6, band: np.ndarray | None = None
+             ) -> tuple[float, dict, np.ndarray]:
+    """Loss of the reference's deconvolution (reference code ``deconvolve_measurements.py``)
+    and its gradient with respect to w.
 
-    w, target: [P, T] real (target normalised to max |s| = 1). ŝ = convolve(w, p);
+    w, target: [P, T] real (target normalised to max |s| = 1, and band-passed with ``band``
+    if that is given). ŝ = convolve(w, p, band);
     L = mean((ŝ − s)²) + sparsity·mean|w| + phase·(mean|Δ_t cos φ| + mean|Δ_t sin φ|),
     φ = angle(analytic(ŝ)), Δ_t the difference of neighbouring samples. The unit phasor
     a/|a| uses |a| regularised to sqrt(|a|² + (eps·max|a|)²).
     Returns (L, {'mse', 'sparsity', 'phase'}, dL/dw [P, T] float64).
     """
     w = np.asarray(w, dtype=np.float64)
-    shat = convolve(w, pulse)
+    shat = convolve(w, pulse, band)
     r = shat - target
     m = w.size
     mse = float(np.mean(r ** 2))
@@ -210,7 +233,7 @@ def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: flo
         if n_t % 2 == 0:
             h[n_t // 2] = 1.0
         g_s = g_s + phase * np.real(scipy.fft.ifft(full * h, axis=-1))
-    g_w = correlate(g_s, pulse) + sparsity * np.sign(w) / m
+    g_w = correlate(g_s, pulse, band) + sparsity * np.sign(w) / m
     loss = mse + sparsity * sp + phase * ph
     return loss, {"mse": mse, "sparsity": sp, "phase": ph}, g_w
 
@@ -241,6 +264,7 @@ class INRSettings:
     width: int = 32
     hidden_layers: int = 2
     seed: int = 0
+    band_db: float = 30.0           # data term within this many dB of the pulse's peak
 
     def validate(self) -> None:
         for name in ("pings_per_inr", "iterations", "n_levels", "features_per_level",
@@ -257,6 +281,9 @@ class INRSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise InputError(f"inr {name}: must be >= 0, got {v!r}")
+        if not (isinstance(self.band_db, (int, float)) and self.band_db > 0):
+            raise InputError(f"inr band_db: must be positive (inf = full band), "
+                             f"got {self.band_db!r}")
         if self.log2_hashmap_size > 24:
             raise InputError(f"inr log2_hashmap_size: at most 24, got {self.log2_hashmap_size}")
 
@@ -312,7 +339,13 @@ def _coords(m, n_pings: int, n_t: int):
 
 def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
               on_iteration=None) -> tuple[np.ndarray, list[float]]:
-    """Fit one INR to ``target`` [P, T] (normalised); returns (w [P, T] float32, losses)."""
+    """Fit one INR to ``target`` [P, T] (normalised); returns (w [P, T] float32, losses).
+
+    The data term is restricted to the pulse band (``st.band_db``): target and pulse are
+    band-passed alike, so energy the pulse cannot have produced (e.g. the strong
+    low-frequency content of real recordings) does not pull the fit."""
+    band = pulse_band(pulse, target.shape[1], st.band_db)
+    target = bandpass(target, band, pulse.size)
     dr = None
     field_ = _Field(st, seed)
     dr, m = field_.dr, field_.m
@@ -324,7 +357,7 @@ def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
         field_.set_lr(st.lr * decay ** it)
         w = field_(coords)
         w_np = w.numpy().reshape(target.shape)
-        loss, parts, g = inr_loss(w_np, target, pulse, st.sparsity, st.phase)
+        loss, parts, g = inr_loss(w_np, target, pulse, st.sparsity, st.phase, band=band)
         if not math.isfinite(loss):
             raise InputError(f"inr: loss became {loss} at iteration {it}; lower --lr")
         losses.append(loss)

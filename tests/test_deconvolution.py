@@ -52,20 +52,25 @@ def test_convolve_and_correlate_are_adjoint_and_match_numpy():
     np.testing.assert_allclose(dc.convolve(w, p),
                                [np.convolve(row, p)[:120] for row in w], atol=1e-10)
     assert np.isclose(np.sum(dc.convolve(w, p) * g), np.sum(w * dc.correlate(g, p)))
+    band = dc.pulse_band(p, 120, 10.0)
+    assert 0 < band.sum() < band.size
+    assert np.isclose(np.sum(dc.convolve(w, p, band) * g), np.sum(w * dc.correlate(g, p, band)))
+    assert dc.pulse_band(p, 120, np.inf) is None
 
 
 def test_inr_loss_gradient_matches_finite_differences():
     rng = np.random.default_rng(1)
     p = signals.named_pulse("lfm-20k", FS)[:40]
     w, tgt = rng.normal(size=(2, 90)) * 0.1, rng.normal(size=(2, 90)) * 0.1
-    loss, parts, g = dc.inr_loss(w, tgt, p, sparsity=0.1, phase=0.05)
-    assert np.isclose(loss, parts["mse"] + 0.1 * parts["sparsity"] + 0.05 * parts["phase"])
-    for seed in range(3):
-        d = np.random.default_rng(10 + seed).normal(size=w.shape)
-        eps = 1e-6
-        fd = (dc.inr_loss(w + eps * d, tgt, p, 0.1, 0.05)[0]
-              - dc.inr_loss(w - eps * d, tgt, p, 0.1, 0.05)[0]) / (2 * eps)
-        assert np.isclose(fd, np.sum(g * d), rtol=1e-5)
+    for band in (None, dc.pulse_band(p, 90, 20.0)):
+        loss, parts, g = dc.inr_loss(w, tgt, p, sparsity=0.1, phase=0.05, band=band)
+        assert np.isclose(loss, parts["mse"] + 0.1 * parts["sparsity"] + 0.05 * parts["phase"])
+        for seed in range(3):
+            d = np.random.default_rng(10 + seed).normal(size=w.shape)
+            eps = 1e-6
+            fd = (dc.inr_loss(w + eps * d, tgt, p, 0.1, 0.05, band=band)[0]
+                  - dc.inr_loss(w - eps * d, tgt, p, 0.1, 0.05, band=band)[0]) / (2 * eps)
+            assert np.isclose(fd, np.sum(g * d), rtol=1e-5)
 
 
 def test_analytic_matches_scipy_hilbert():
@@ -133,6 +138,8 @@ def test_inr_settings_are_validated():
         dc.INRSettings(iterations=0).validate()
     with pytest.raises(InputError, match="sparsity"):
         dc.INRSettings(sparsity=-1.0).validate()
+    with pytest.raises(InputError, match="band_db"):
+        dc.INRSettings(band_db=0.0).validate()
 
 
 # ---- datasets -------------------------------------------------------------------------------

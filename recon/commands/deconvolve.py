@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--hidden-layers", type=int, default=d.hidden_layers,
                    help=f"MLP hidden layers (default {d.hidden_layers})")
     g.add_argument("--seed", type=int, default=d.seed, help=f"seed (default {d.seed})")
+    g.add_argument("--band-db", type=float, default=d.band_db,
+                   help="fit the data only where the pulse spectrum is within this many dB "
+                        f"of its peak ('inf' = full band; default {d.band_db:g})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         pings_per_inr=args.pings_per_inr, iterations=args.iterations, lr=args.lr,
         lr_final=args.lr_final, sparsity=args.sparsity, phase=args.phase,
         n_levels=args.levels, log2_hashmap_size=args.log2_hashmap_size, width=args.width,
-        hidden_layers=args.hidden_layers, seed=args.seed)
+        hidden_layers=args.hidden_layers, seed=args.seed, band_db=args.band_db)
     if args.method == "inr":
         settings.validate()
     ds = SonarDataset.read(args.dataset, transients=False)
