@@ -42,17 +42,19 @@ def parse_slice(text: str | None, n: int) -> np.ndarray | None:
         return None
     parts = text.split(":")
     try:
-        if len(parts) == 1:
-            index = int(parts[0])
-            if not -n <= index < n:
-                raise InputError(f"--pings {text!r}: ping {index} does not exist (the dataset "
-                                 f"has {n}: 0 .. {n - 1})")
-            return np.array([index % n])
         if len(parts) > 3:
             raise ValueError
         args = [int(p) if p.strip() else None for p in parts]
     except ValueError:
         raise InputError(f"--pings: expected START:STOP[:STEP], got {text!r}") from None
+    if len(args) == 1:
+        index = args[0]
+        if index is None:
+            raise InputError(f"--pings: expected START:STOP[:STEP] or one ping, got {text!r}")
+        if not -n <= index < n:
+            raise InputError(f"--pings {text!r}: ping {index} does not exist (the dataset "
+                             f"has {n}: 0 .. {n - 1})")
+        return np.array([index % n])
     if len(args) == 3 and args[2] is not None and args[2] <= 0:
         raise InputError(f"--pings {text!r}: STEP must be a positive integer")
     idx = np.arange(n)[slice(*args)]
