@@ -88,13 +88,14 @@ class SolverSettings:
     mlp_width: int = 128
     mlp_hidden: int = 3
     warm_start_iterations: int = 0
+    autocorrelation_taps: int = 0
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays", "hash_levels",
                      "hash_features", "hash_base_resolution", "mlp_width", "mlp_hidden"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
-        for name in ("pings_per_chunk", "warm_start_iterations", "reg_start"):
+        for name in ("pings_per_chunk", "warm_start_iterations", "reg_start", "autocorrelation_taps"):
             if int(getattr(self, name)) < 0:
                 raise InputError(f"{name}: must be >= 0, got {getattr(self, name)}")
         if not 8 <= self.hash_log2_size <= 26:
@@ -156,6 +157,9 @@ HELP = {
     "hash_base_resolution": "coarsest level resolution over the grid box",
     "hash_level_scale": "resolution factor between levels",
     "mlp_width": "MLP hidden width", "mlp_hidden": "MLP hidden layers",
+    "autocorrelation_taps": "model the matched filter: convolve the rendered impulse response with "
+                            "the pulse's autocorrelation over ±taps samples (0 = off; for "
+                            "matched-filtered targets)",
     "warm_start_iterations": "NBP: first fit the network to the scaled backprojection for this many "
                              "steps (0 = reference's cold start)",
 }
@@ -443,6 +447,57 @@ def render_chunk(scene, params, samples, settings: SolverSettings, eps: float):
 
 
 # ---------------------------------------------------------------------------------------
+# Matched-filter model: the pulse autocorrelation
+
+def pulse_autocorrelation(dataset, taps: int) -> np.ndarray:
+    """The matched filter's response to the dataset's own pulse at lags −taps…taps samples
+    [2·taps + 1] complex128, normalised to 1 at lag 0 — computed with the same matched filter
+    as the data (:func:`recon.measurements.matched_filtered`), so conventions agree."""
+    from sonarsim import signals
+    pulse = np.asarray(dataset.pulse, dtype=np.float64)
+    c = taps + 1
+    w = np.zeros(len(pulse) + 2 * taps + 2)
+    w[c:c + len(pulse)] = pulse
+    mf = signals.matched_filter(w[None], pulse, mode="linear")[0]
+    acf = np.asarray(mf[c - taps:c + taps + 1], dtype=np.complex128)
+    return acf / acf[taps]
+
+
+def expand_bins(bins: np.ndarray, taps: int, n_t: int):
+    """Bins to render for the autocorrelation model: per ping the sorted union of
+    k − taps … k + taps over the drawn bins k, padded to a fixed length by repeating its last
+    bin (a zero along-ray step: no effect on transmittance). Returns (render_bins [P, L],
+    positions [P, K, 2·taps + 1]: where bin k − m sits in render_bins, for lags m = −taps…taps)."""
+    lags = np.arange(-taps, taps + 1)
+    want = np.clip(bins[:, :, None] - lags[None, None, :], 0, n_t - 1)
+    length = bins.shape[1] * len(lags)
+    render = np.empty((len(bins), length), dtype=np.int64)
+    pos = np.empty(want.shape, dtype=np.int64)
+    for i in range(len(bins)):
+        u = np.unique(want[i])
+        render[i, :len(u)] = u
+        render[i, len(u):] = u[-1]
+        pos[i] = np.searchsorted(u, want[i]) + i * length
+    return render, pos
+
+
+def convolve_rendered(m, y_re, y_im, pos: np.ndarray, acf: np.ndarray):
+    """Σ_m acf[m]·ŷ(k − m) for every drawn bin (Float re, im [P·K]) from the rendered ŷ."""
+    import drjit as dr
+    P, K, L = pos.shape
+    out_re = dr.zeros(m.Float, P * K)
+    out_im = dr.zeros(m.Float, P * K)
+    for j in range(L):
+        idx = m.UInt32(pos[:, :, j].ravel().astype(np.uint32))
+        a_re = dr.gather(m.Float, y_re, idx)
+        a_im = dr.gather(m.Float, y_im, idx)
+        cr, ci = float(acf[j].real), float(acf[j].imag)
+        out_re += cr * a_re - ci * a_im
+        out_im += cr * a_im + ci * a_re
+    return out_re, out_im
+
+
+# ---------------------------------------------------------------------------------------
 # The loop
 
 def dataset_digest(dataset) -> str:
@@ -543,6 +598,12 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     directions = forward.cone_directions(settings.n_rays, settings.beamwidth_deg)
     eps = 0.5 * float(np.min(scene.h))
     chunk = settings.pings_per_chunk or settings.pings_per_iteration
+    taps = int(settings.autocorrelation_taps)
+    if taps and info["target_kind"] != "matched":
+        raise InputError("autocorrelation_taps: the pulse-autocorrelation model is for "
+                         f"matched-filtered targets, this run fits {info['target_kind']} data")
+    acf = pulse_autocorrelation(dataset, taps) if taps else None
+    n_t = tgt.shape[1]
     bar = progress_bar(settings.iterations, progress, unit="it", desc=desc, initial=start,
                        leave=False)
     for it in range(start, settings.iterations):
@@ -558,15 +619,20 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
         record = {}
         for c0 in range(0, len(pings), chunk):
             sl = slice(c0, c0 + chunk)
-            geo = forward.ping_geometry(dataset, pings[sl], bins[sl], speeds)
+            render_bins, pos = (expand_bins(bins[sl], taps, n_t) if taps
+                                else (bins[sl], None))
+            geo = forward.ping_geometry(dataset, pings[sl], render_bins, speeds)
             samples = forward.EllipsoidSamples(geo, directions, frames=frames[sl])
             u_vec = None
             if need_u:
-                u = u_all[:, sl].reshape(3, -1)
+                u = u_all[:, sl].reshape(3, settings.n_rays * len(pings[sl]), -1)
+                u = np.resize(u, (3, samples.shape[0] * samples.shape[1] * samples.shape[2]))
                 u_vec = m.Array3f(*(m.Float(u[a]) for a in range(3)))
             t = tgt[pings[sl, None], bins[sl]].ravel()
             t_re, t_im = m.Float(t.real.copy()), m.Float(t.imag.copy())
             y_re, y_im, s_re, s_im = render_chunk(scene, opt.params, samples, settings, eps)
+            if taps:
+                y_re, y_im = convolve_rendered(m, y_re, y_im, pos, acf)
             field = scene.bind(opt.params)
             terms = loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings,
                                scene.h, reg_on, u_vec, weight=len(pings[sl]) / len(pings))

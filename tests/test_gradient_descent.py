@@ -211,3 +211,29 @@ def test_default_gd_is_not_worse_than_backprojection_on_point_targets():
     assert amplitude_error(vol.volume) < amplitude_error(x_bp)
     peak = np.unravel_index(np.argmax(np.abs(vol.volume)), g.shape)
     assert np.linalg.norm(g.position_of(peak) - pts[0]) <= 1.5 * float(g.spacing.max())
+
+
+def test_pulse_autocorrelation_model_fits_matched_filtered_data(point_ds):
+    """Matched-filtered data are σ convolved with the pulse autocorrelation: the model with
+    the autocorrelation (±6 taps) fits them far better than the pulse-free model."""
+    from recon import solver
+    acf = solver.pulse_autocorrelation(point_ds, 6)
+    assert abs(acf[6]) == pytest.approx(1.0) and np.argmax(np.abs(acf)) == 6
+    np.testing.assert_allclose(np.abs(acf), np.abs(acf[::-1]), rtol=0.05)
+    bins = np.array([[10, 12, 30], [5, 6, 7]])
+    render, pos = solver.expand_bins(bins, 2, 40)
+    lags = np.arange(-2, 3)
+    flat = render.ravel()
+    assert np.array_equal(flat[pos], np.clip(bins[:, :, None] - lags, 0, 39))
+    assert np.all(np.diff(render, axis=1) >= 0)
+    g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (11, 11, 11))
+    ratios = {}
+    for taps in (0, 6):
+        seen = []
+        gd.solve(point_ds, g, iterations=25, seed=2, progress=False, n_rays=300,
+                 beamwidth_deg=5.0, bins_per_ping=4, pings_per_iteration=4, lambertian=False,
+                 occlusion_scale=0.0, autocorrelation_taps=taps,
+                 callback=lambda i, r: seen.append(r["data"]))
+        ratios[taps] = np.mean(seen[-5:]) / np.mean(seen[:3])
+    # Measured: 1.10 without, 0.46 with the autocorrelation.
+    assert ratios[6] < 0.6 and ratios[6] < 0.5 * ratios[0]
