@@ -53,6 +53,9 @@ def build_parser(prog: str, package: str, description: str) -> argparse.Argument
     return parser
 
 
+MAX_THREADS = 1024     # Dr.Jit worker threads; more only exhausts the process's thread limit
+
+
 def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
     return any(option in a.option_strings for a in parser._actions)
 
@@ -117,6 +120,8 @@ def _thread_count(threads):
         return
     if isinstance(threads, bool) or int(threads) != threads or threads < 1:
         raise InputError(f"--threads must be >= 1, got {threads}")
+    if threads > MAX_THREADS:
+        raise InputError(f"--threads must be at most {MAX_THREADS}, got {threads}")
     runtime.mitsuba()       # a working libLLVM before drjit is imported
     import drjit as dr
     before = dr.thread_count()

@@ -69,6 +69,7 @@ def _variant(ds: SonarDataset, **changes) -> SonarDataset:
     (["--max-memory", "lots"], "--max-memory: expected a size"),
     (["--bounds", "50", "51", "50", "51", "50", "51"], "no voxel of the grid lies within"),
     (["--threads", "0"], "--threads must be >= 1"),
+    (["--threads", "100000"], "--threads must be at most 1024"),
 ])
 def test_backproject_refuses_before_allocating(ds_file, tmp_path, capsys, extra, message):
     out = tmp_path / "v.h5"
