@@ -701,6 +701,9 @@ def run_simulation(job: Job) -> dict:
         raise FormatError(f"job '{job.name}': the {', '.join(changed)} changed since the batch "
                           "was validated; run the batch again")
     settings.extra_meta = {**settings.extra_meta, **job_meta(job)}
+    notes: list[str] = []
+    if hasattr(settings, "log"):            # the simulator's one-line notices go to batch.csv
+        settings.log = notes.append
     if not Path(job.output).parent.is_dir():
         raise FormatError(f"{Path(job.output).parent}: output directory not found on this "
                           "worker (the batch needs a file system shared with the workers)")
@@ -712,7 +715,7 @@ def run_simulation(job: Job) -> dict:
     if record is None:
         raise FormatError(f"{job.output}: not a complete dataset of job '{job.name}' after "
                           "the simulation")
-    return {"ran": True, **record}
+    return {"ran": True, **record, **({"notes": " | ".join(notes)} if notes else {})}
 
 
 def run_reconstruction(job: Job, step: ReconStep, _needed: Any = None) -> dict:
@@ -833,8 +836,12 @@ class _Table:
         old = self.previous.get(job.job_id, {})
         row["status"], row["error"] = status, error
         row["wall_s"] = sim_wall if sim_wall is not None else (old.get("wall_s") or None)
+        if sim_wall is None and old.get("notes"):
+            row["notes"] = old["notes"]
         for key, value in (sim or {}).items():
-            if key != "ran":
+            if key == "notes":
+                row["notes"] = value
+            elif key != "ran":
                 row[key] = value
                 if key not in self.fidelity_keys:
                     self.fidelity_keys.append(key)
@@ -855,7 +862,8 @@ class _Table:
         if not force and time.monotonic() - self.last_write < 1.0:
             return
         from .atomic import atomic_path
-        columns = ["job", "status", "output", "wall_s"] + self.fidelity_keys + ["error"]
+        columns = ["job", "status", "output", "wall_s"] + self.fidelity_keys + ["error",
+                                                                                "notes"]
         params = _param_columns(self.plan.jobs)
         # a setting named like a measured value (mc_snr_db: the target) gets its own column
         header = {("param", k): (f"{k}_requested" if k in self.fidelity_keys else k)
