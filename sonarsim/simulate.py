@@ -373,9 +373,10 @@ def pilot_indices(n: int, count: int = PILOT_POSES) -> np.ndarray:
 
 
 def _groups(settings: SimulationSettings, sampling: Sampling) -> dict[str, list[int]]:
-    """Bounce indices (0-based, summed into the waveforms) per sampling control: 'surface'
-    (bounce 1 by the surface estimator, density 1/surface_spacing²) and 'paths' (the
-    TX-cone paths: bounces >= 2, and bounce 1 with the cone estimator)."""
+    """Bounce indices (0-based, summed into the waveforms) per estimator part, for the
+    pilot's report: 'surface' (bounce 1 by the surface estimator) and 'paths' (bounces
+    >= 2, continued from the surface samples or traced from the TX; with the cone
+    estimator bounce 1 too)."""
     chosen = settings.bounce_index
     if sampling.surface_spacing is None:
         return {"paths": chosen}
@@ -422,15 +423,14 @@ def choose_sampling(scene, poses: Poses, settings: SimulationSettings, crop: Cro
     Explicit settings are used as given (paths rounded up to an even count). Otherwise a
     pilot renders :data:`PILOT_POSES` poses spread over the trajectory at two densities
     (:data:`PILOT_SCALES` of the base density) and measures the Monte-Carlo noise after
-    matched filtering of each sampling control (surface strata for bounce 1, TX-cone
-    paths for the rest: :func:`_groups`) at both. Each control's noise is fitted by a
-    power law in its density (dB per decade, clamped to 10..40: independent samples give
-    10, stratified quadrature more); the noise budget for the target plus
-    :data:`AUTO_MARGIN_DB` is shared in proportion to the square roots of the pilot noises
-    (the cost-optimal split for equal costs and 1/N noise), and each density is set to
-    meet its share, with at most :data:`MAX_AUTO_PATHS` paths per pose and strata no
-    smaller than :data:`MIN_AUTO_SPACING`. If a cap binds the run says so once, with the
-    SNR it expects.
+    matched filtering at both. The noise is fitted by a power law in the sampling density
+    (:func:`_density`: surface samples per m² with the surface estimator, whose samples
+    also start the paths of bounces >= 2, else TX-cone paths per pose), in dB per decade
+    clamped to 10..40 (independent samples give 10, stratified quadrature more), and the
+    density is set to reach the target plus :data:`AUTO_MARGIN_DB`. Up to
+    :data:`PILOT_REFINEMENTS` more pilots at the planned density refit the law. At most
+    :data:`MAX_AUTO_PATHS` paths per pose and strata no smaller than
+    :data:`MIN_AUTO_SPACING`; if a cap binds the run says so once, with the SNR it expects.
     """
     integrator = make_integrator(settings.bounces, settings.beams, settings.estimator)
     spacing = (settings.surface_spacing if settings.surface_spacing is not None
@@ -445,6 +445,8 @@ def choose_sampling(scene, poses: Poses, settings: SimulationSettings, crop: Cro
     runs = []
     for scale in PILOT_SCALES:
         s = base.scaled(scale, MAX_AUTO_PATHS)
+        if s.surface_spacing is not None:           # paths unused: keep them
+            s = Sampling(base.paths_per_pose, s.surface_spacing)
         runs.append((s, measure_fidelity(scene, sub, settings, s, crop, window, pilot_seed)))
     record = {"mode": f"automatic (target {target:g} dB)", "pilot_poses": len(sub)}
     for _ in range(PILOT_REFINEMENTS + 1):
@@ -473,44 +475,36 @@ def choose_sampling(scene, poses: Poses, settings: SimulationSettings, crop: Cro
     return chosen, record
 
 
+def _density(s: Sampling) -> float:
+    """The sampling density that a run's noise depends on: surface samples per m² when
+    bounce 1 is a surface integral (bounces >= 2 then continue from those samples),
+    else TX-cone paths per pose."""
+    return s.surface_spacing ** -2 if s.surface_spacing is not None else float(s.paths_per_pose)
+
+
 def _plan(base: Sampling, s0: Sampling, r0: dict, s1: Sampling, r1: dict, target: float):
-    """(chosen, wanted without caps, expected SNR of chosen, slopes) from two pilot runs
+    """(chosen, wanted without caps, expected SNR of chosen, slope) from two pilot runs
     (see :func:`choose_sampling`), or None without signal or noise."""
     signal = r1["mf_total"] - r1["mf_noise"]
-    if not (signal > 0 and r1["mf_noise"] > 0):
+    n0, n1 = r0["mf_noise"], r1["mf_noise"]
+    if not (signal > 0 and n1 > 0):
         return None
     budget = signal * 10.0 ** (-(target + AUTO_MARGIN_DB) / 10.0)
-
-    def gain(g: str, a: Sampling, b: Sampling) -> float:
-        """Decades of density of control g from a to b."""
-        if g == "paths":
-            return math.log10(b.paths_per_pose / a.paths_per_pose)
-        return 2 * math.log10(a.surface_spacing / b.surface_spacing)
-
-    roots = {g: math.sqrt(max(n, 0.0)) for g, n in r1["groups"].items()}
-    factors, slopes = {}, {}
-    for g, n1 in r1["groups"].items():
-        n0, dec = r0["groups"][g], gain(g, s0, s1)
-        slope = 10.0 * math.log10(n0 / n1) / dec if n0 > 0 and n1 > 0 and dec > 0.05 else 10.0
-        slopes[g] = min(40.0, max(10.0, slope))
-        share = budget * roots[g] / sum(roots.values()) if roots[g] > 0 else budget
-        factors[g] = (n1 / share) ** (10.0 / slopes[g]) if n1 > 0 else 1.0
+    decades = math.log10(_density(s1) / _density(s0))
+    slope = 10.0 * math.log10(n0 / n1) / decades if n0 > 0 and abs(decades) > 0.05 else 10.0
+    slope = min(40.0, max(10.0, slope))
+    factor = (n1 / budget) ** (10.0 / slope)       # density relative to s1
 
     def build(max_paths: int, min_spacing: float) -> Sampling:
-        sp = None
-        if s1.surface_spacing is not None:   # never coarser than the integrator's strata
-            sp = min(base.surface_spacing,
-                     max(min_spacing, s1.surface_spacing / math.sqrt(factors.get("surface", 1.0))))
-        p = min(int(max_paths), max(2, math.ceil(s1.paths_per_pose * factors.get("paths", 1.0))))
-        return Sampling(p + p % 2, sp)
-
-    def predicted(s: Sampling) -> float:
-        noise = sum(n1 * 10.0 ** (-slopes[g] * gain(g, s1, s) / 10.0)
-                    for g, n1 in r1["groups"].items())
-        return snr_db(signal, noise)
+        if s1.surface_spacing is not None:         # the paths do not matter then
+            return Sampling(base.paths_per_pose,
+                            max(min_spacing, s1.surface_spacing / math.sqrt(factor)))
+        p = min(int(max_paths), max(2, math.ceil(s1.paths_per_pose * factor)))
+        return Sampling(p + p % 2, None)
 
     chosen = build(MAX_AUTO_PATHS, MIN_AUTO_SPACING)
-    return chosen, build(2**62, 0.0), predicted(chosen), slopes
+    expected = snr_db(signal, n1 * (_density(chosen) / _density(s1)) ** (-slope / 10.0))
+    return chosen, build(2**62, 0.0), expected, {"all": slope}
 
 
 # ----------------------------------------------------------------------------- rendering
