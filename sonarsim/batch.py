@@ -890,6 +890,10 @@ def run_batch(plan: Plan, engine, *, progress: bool = True,
     """Run every job of ``plan`` that is not complete yet on ``engine`` (a
     :class:`sonarsim.batch_engine.Engine`); record every job in ``DIR/batch.csv``."""
     from .outputs import output_lock
+    todo = [j for j in plan.jobs if dataset_record(j.output, j.job_id) is None
+            or any(step_record(s) is None for s in j.recon)]
+    if todo:
+        engine.start(len(todo))                  # a scheduler that cannot be reached: no DIR
     plan.out.mkdir(parents=True, exist_ok=True)
     with output_lock(plan.out / CSV_NAME):      # one batch per DIR at a time
         return _run_batch(plan, engine, progress, log)
