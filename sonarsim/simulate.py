@@ -1,8 +1,8 @@
 """From a scene and poses to a sonar dataset: render -> pulse convolution -> decimation -> noise.
 
-The pipeline follows the reference (REFERENCE_SPEC §6.2), streamed over chunks of poses:
+The pipeline follows the reference (reference code `airsas/reconstruct_from_numpy.py`), streamed over chunks of poses:
 
-1. **Window.** The crop window of the scene box (REFERENCE_SPEC §1.6 step 5, pulse length
+1. **Window.** The crop window of the scene box (reference code `airsas/reconstruct_airsas_scene.py` step 5, pulse length
    min(L, 100) samples): waveform sample k of every ping is at time (start_sample + k)/fs,
    start_sample = the window's ``min_sample``.
 2. **Render** energy transients over round-trip path length with bins of
@@ -17,16 +17,23 @@ The pipeline follows the reference (REFERENCE_SPEC §6.2), streamed over chunks 
    starts at time L/c.
 5. **Decimate**: keep every K-th sample (bins 0, K, 2K, ...). No anti-alias filter is
    needed because the resampled pulse is band-limited below fs/2.
-6. **Noise** (``snr_db`` given): white Gaussian noise with
-   σ² = signal_power(all noiseless waveforms)·10^(−SNR/10) (the SNR definition of
-   :func:`sonarsim.signals.signal_power`, over the whole dataset as the reference does).
-   Ping i's noise is σ·z_i with z_i drawn from its own generator seeded by (seed, i), so
-   it does not depend on the chunking or on where a run was resumed.
+6. **Noise** (``snr_db`` given): white Gaussian noise that tops the measured Monte-Carlo
+   noise up to the requested *total* SNR, in the unchanged definition of
+   :func:`sonarsim.signals.signal_power` over the whole dataset:
+   σ² = P_s·10^(−SNR/10) − P_mc (:func:`sonarsim.fidelity.noise_budget`). Ping i's noise
+   is σ·z_i with z_i drawn from its own generator seeded by (seed, i), so it does not
+   depend on the chunking or on where a run was resumed.
 
-**Amplitude model.** The waveforms are intensity-mode, as the reference's simulation: the
-energy histogram convolved with the pulse, so an echo's amplitude falls as 1/(r_T² r_R²)
-(DESIGN §4), whereas measured AirSAS waveforms are pressure, ∝ 1/(r_T r_R). The dataset
-says so in ``meta['amplitude_model'] = 'intensity'``.
+**Fidelity.** Every pose is rendered as two independent half-estimates
+(:class:`sonarsim.halves.HalfRenderer`); the dataset holds their mean, and their half
+difference gives the Monte-Carlo SNR after matched filtering stored as
+``meta['mc_snr_db']`` (:mod:`sonarsim.fidelity`). Without an explicit density a pilot
+chooses it for ``mc_snr_db`` (:func:`choose_sampling`). docs/simulation.md "What fidelity
+a dataset has".
+
+**Amplitude model** (``amplitude``, stored as ``meta['amplitude_model']``): 'intensity'
+(energy histogram ⊗ pulse, the reference's simulation), 'pressure' or 'coherent' (complex
+histograms convolved with the analytic pulse, real part kept); docs/simulation.md.
 
 **Streaming and resuming.** Chunks go through :class:`sonarsim.dataset.DatasetStreamWriter`
 into ``<out>.partial``; a killed run resumes where it stopped. Without noise that is the
@@ -88,7 +95,7 @@ def simulation_window(poses: Poses, spec: SceneSpec, pulse: Pulse, sound_speed: 
 
 
 def oversampled_pulse(pulse: np.ndarray, oversample: int) -> np.ndarray:
-    """The pulse at fs·oversample by Fourier interpolation [L·oversample] (REFERENCE_SPEC §6.2)."""
+    """The pulse at fs·oversample by Fourier interpolation [L·oversample] (reference code `airsas/reconstruct_from_numpy.py`)."""
     return fft_upsample(np.asarray(pulse, float), oversample)
 
 
