@@ -21,8 +21,15 @@ ABOVE_GROUND = ["--crop", "-0.2", "0.2", "-0.2", "0.2", "0.005", "0.3"]
 SHARED_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "airsas_real"
 
 
+# Commands that refuse to replace an existing output without --force (a demo re-run
+# replaces its own outputs).
+REPLACES = {"render", "simulate", "import-airsas", "backproject", "gd", "export", "compare"}
+
+
 def step(log: list[str], title: str, tool, argv: list[str]) -> str:
     """Run one CLI call, echo it, keep its stdout for the summary; stop on failure."""
+    if argv[0] in REPLACES:
+        argv = [*argv, "--force"]
     print(f"\n== {title}\n$ {tool.__module__.split('.')[0]} {' '.join(argv)}", flush=True)
     out = io.StringIO()
     t0 = time.perf_counter()
@@ -43,21 +50,27 @@ def main() -> int:
     parser.add_argument("--scene", default="tabletop", help="shipped scene name or TOML file")
     parser.add_argument("--poses", default="cylindrical:120:6",
                         help="trajectory (default: 120 angles x 6 heights = 720 poses)")
-    parser.add_argument("--paths-per-pose", type=int, default=4000)
+    parser.add_argument("--paths-per-pose", type=int, default=4000,
+                        help="paths per pose of the transients render (default 4000)")
+    parser.add_argument("--mc-snr-db", type=float, default=30.0,
+                        help="Monte-Carlo SNR after matched filtering of the simulated "
+                             "dataset (default 30 dB, simulate's default)")
     args = parser.parse_args()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     log: list[str] = []
     t_start = time.perf_counter()
-    common = [args.scene, "--poses", args.poses, "--paths-per-pose", str(args.paths_per_pose),
-              "--seed", "1"]
+    common = [args.scene, "--poses", args.poses, "--seed", "1"]
 
     step(log, "render per-bounce transients", sonarsim_main,
-         ["render", *common, "--out", str(out / "transients.h5")])
+         ["render", *common, "--paths-per-pose", str(args.paths_per_pose),
+          "--out", str(out / "transients.h5")])
     step(log, "picture of the transients", sonarsim_main,
          ["plot", str(out / "transients.h5"), "--out", str(out / "transients")])
-    step(log, "simulate an AirSAS-style dataset (20 kHz LFM, 20 dB SNR)", sonarsim_main,
+    step(log, "simulate an AirSAS-style dataset (20 kHz LFM, 20 dB total SNR, Monte-Carlo "
+              f"SNR {args.mc_snr_db:g} dB)", sonarsim_main,
          ["simulate", *common, "--pulse", "lfm-20k", "--snr-db", "20", "--restart",
+          "--mc-snr-db", str(args.mc_snr_db),
           "--out", str(out / "dataset.h5")])
     step(log, "dataset summary", sonarsim_main, ["info", str(out / "dataset.h5")])
     step(log, "echo images, pulse, trajectory", sonarsim_main,

@@ -100,6 +100,54 @@ def test_sphere_echo_peaks_at_its_range(small_ball, tmp_path):
     assert np.all(np.abs(peak - expected) <= 1.0), peak - expected
 
 
+def ball_energy_numpy(tx, rx, center, radius, n=40_000):
+    """Bounce-1 energy per pose of a Lambertian sphere (albedo 1, beams covering it) by a
+    Fibonacci-lattice quadrature of b_T b_R/π cosθ_i cosθ_o/(r_T² r_R²) dA; a convex
+    sphere sees a point exactly when both cosines are positive. Also the energy-weighted
+    mean path length."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    normal = np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z]
+    points = center + radius * normal
+    area = 4 * np.pi * radius ** 2 / n
+    energy, mean_path = [], []
+    for t, r in zip(tx, rx):
+        dt, dr = t - points, r - points
+        lt, lr = np.linalg.norm(dt, axis=1), np.linalg.norm(dr, axis=1)
+        ci = np.clip(np.sum(normal * dt, axis=1) / lt, 0, None)
+        co = np.clip(np.sum(normal * dr, axis=1) / lr, 0, None)
+        w = ci * co / (np.pi * lt ** 2 * lr ** 2) * area
+        energy.append(w.sum())
+        mean_path.append(np.sum(w * (lt + lr)) / w.sum())
+    return np.array(energy), np.array(mean_path)
+
+
+def test_sphere_energy_and_delay_within_monte_carlo_error(small_ball, tmp_path):
+    """Bounce-1 energy and mean path length of the ball against NumPy quadrature, with a
+    bound derived from the measured Monte-Carlo error (two seeds), not a loose margin."""
+    spec = load_scene(small_ball)
+    poses = trajectory("cylindrical:6:2", box=spec.box)
+    runs = [SonarDataset.read(sim.simulate(spec, poses, tmp_path / f"b{seed}.h5",
+                                           settings(bounces=1, seed=seed, keep_transients=True)))
+            for seed in (5, 6)]
+    t = runs[0].transients
+    lengths = t.path_start + (np.arange(t.n_bins) + 0.5) * t.path_bin_width   # bin centres
+    energy = np.array([d.transients.transients[:, 0].sum(axis=1, dtype=float) for d in runs])
+    path = np.array([(d.transients.transients[:, 0].astype(float) @ lengths) / e
+                     for d, e in zip(runs, energy)])
+    ref_energy, ref_path = ball_energy_numpy(runs[0].tx, runs[0].rx,
+                                             np.array([0.03, -0.02, 0.15]), 0.005)
+    # Monte-Carlo standard error of the mean of the two runs, pooled over the poses.
+    se_energy = np.sqrt(np.mean((energy[0] - energy[1]) ** 2 / 2) / 2)
+    se_path = np.sqrt(np.mean((path[0] - path[1]) ** 2 / 2) / 2)
+    rel = np.abs(energy.mean(axis=0) / ref_energy - 1)
+    # 4 standard errors, plus the mesh (an icosphere, 0.2 % less area) and quadrature.
+    assert np.all(rel < 4 * se_energy / ref_energy + 3e-3), (rel, se_energy / ref_energy)
+    assert np.all(np.abs(path.mean(axis=0) - ref_path) < 4 * se_path + 2e-5)
+    assert np.all(se_energy / ref_energy < 0.01)          # the estimate is a precise one
+
+
 def test_snr_and_same_seed_identical(tmp_path):
     spec = load_scene("sphere")
     poses = trajectory("cylindrical:5:2", box=spec.box)
