@@ -1,37 +1,43 @@
-"""The reference's Table 2 protocol (REFERENCE_SPEC §6, §7) on the meshes we have.
+"""The reference's Table 2 in one command: every method, every shape, both evaluation protocols.
 
-For each scene (the reference's bunny, cube and cylinder GT meshes from
-``../shared/data/meshes``, or the shipped procedural ``cube``/``cylinder`` scenes when the
-shared data is absent): simulate a cylindrical AirSAS scan with the 20 kHz LFM at 20 dB
-SNR, reconstruct it with every available method (:data:`METHODS`), evaluate each volume
-against the scene's GT mesh (docs/evaluation.md) and write
+Reed et al., "Neural Volumetric Reconstruction for Coherent Synthetic Aperture Sonar"
+(SIGGRAPH 2023), Table 2 compares backprojection, gradient descent, polar formatting and
+neural backprojection on simulated AirSAS scans (20 kHz LFM, 20 dB SNR) with Chamfer, IoU,
+LPIPS and PSNR. This script runs that comparison on the shapes at hand (bunny, cube,
+cylinder: the reference's GT meshes from ``../shared/data/meshes`` where present, else the
+shipped procedural cube and cylinder) and adds the SNR sweep (0 / 10 / 20 dB) and the 5 kHz
+row for one shape.
 
-* ``table2.md``   -- Markdown table: per scene and method, mean per method, the reference's
-                     published numbers beside ours;
-* ``table2.csv``  -- the same rows, machine readable (``source`` = ours | reference);
-* ``table2.png``  -- per scene: GT render, and per method a side MIP and a render of the
-                     τ = 0.2 surface with its metrics;
-* ``table2_bars.png`` -- bar charts of our per-method means against the reference's;
-* ``table2.json`` -- every metric, the settings, timings and peak memory.
+A **cell** is one (method, shape, SNR, bandwidth) under one :class:`Settings`;
+:func:`run_cell` computes it independently (simulating the dataset if needed,
+reconstructing, evaluating with both protocols of ``recon evaluate``) and stores
+``<out>/cells/<cell>.json``: finished cells are kept, so an interrupted run resumes where it
+stopped (the settings' digest is part of every file name). Outputs in ``--out``:
 
-Sizes (docs/evaluation.md "Table 2"): the default is a documented reduction of the
-reference's protocol that runs in well under 30 min on 2 CPU cores; ``--quick`` (used by
-CI through tests/test_table2.py) in well under 3 min. Every method sees the same dataset.
+* ``table2.md``  -- the table in the reference's layout (Chamfer, IoU, LPIPS, PSNR per method,
+                    mean over shapes) for each protocol with the published row beside ours;
+                    per-shape rows; the SNR sweep and the 5 kHz row;
+* ``table2.csv`` -- every cell, both protocols, machine readable; plus the published rows;
+* ``table2.png`` -- per shape: GT render, and per method the MIP over y and a render of the
+                    τ = 0.2 surface side by side;
+* ``table2.json`` -- settings, every cell, timings.
 
-    .venv/bin/python benchmarks/table2.py --out bench_out/table2 [--quick]
+    .venv/bin/python benchmarks/table2.py --out bench_out/table2 [--quick] [--methods bp,pfa]
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import importlib
 import json
 import math
+import os
 import resource
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -39,16 +45,30 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = ROOT.parent / "shared" / "data" / "meshes"
-SCENES = ("bunny", "cube", "cylinder")
-THRESHOLD = 0.2
-CROP_Z = 0.005          # metres: evaluate only z >= 5 mm (leaves out the ground plane)
-SNR_DB = 20.0
-PULSE = "lfm-20k"
-SEED = 1
 
-# REFERENCE_SPEC §7.2 (site table.png, believed to be the paper's Table 2: mean over the
-# 8 simulated scenes, 54 000 poses, 125 x 125 x 94 voxels). PSNR: the reference's image
-# metrics use depth renders by default, so it sits beside our depth PSNR.
+# ------------------------------------------------------------ the settings, in one place
+
+SHAPES = ("bunny", "cube", "cylinder")
+MAIN_SNR_DB = 20.0
+MAIN_BANDWIDTH = "20k"
+SWEEP_SNR_DB = (0.0, 10.0, 20.0)            # for SWEEP_SHAPE, at MAIN_BANDWIDTH
+SWEEP_BANDWIDTHS = ("5k",)                   # for SWEEP_SHAPE, at MAIN_SNR_DB
+PULSES = {"20k": "lfm-20k", "5k": "lfm-5k"}  # the reference's analytic LFMs, 30->10 / 22.5->17.5 kHz
+THRESHOLD = 0.2
+CROP_Z = 0.005        # exact protocol: evaluate z >= 5 mm (leaves out the ground plane)
+GRID_BOUNDS = ((-0.2, 0.2), (-0.2, 0.2), (0.0, 0.3))   # the reference's simulated scene box
+PROTOCOLS = ("reference", "exact")
+
+# Simulation (the reference's Table-2 data: single scattering, 20 dB on the dataset's signal
+# power, seed 1). Monte-Carlo fidelity: the simulator's own default target (mc_snr_db) picks
+# the paths per pose unless a size fixes them. Keys that this version of
+# sonarsim.simulate.SimulationSettings lacks are ignored.
+SIMULATION = {"bounces": 1, "bounce_set": (1,), "seed": 1, "amplitude": "intensity",
+              "mc_snr_db": None}   # None: sonarsim.simulate.DEFAULT_MC_SNR_DB
+
+# Reference numbers: the paper's Table 2 (the project page's table.png; mean over the 8
+# simulated scenes, 54 000 poses, 125 x 125 x 94 voxels). PSNR sits beside our depth PSNR
+# (the reference's image metrics use depth renders by default, evaluate/main_image_space_loss.py).
 REFERENCE = {
     "Backprojection": {"chamfer_sq": 1.36e-4, "iou": 0.2928, "lpips": 0.1215, "psnr": 15.783},
     "Gradient Descent": {"chamfer_sq": 2.21e-4, "iou": 0.4309, "lpips": 0.1236, "psnr": 15.117},
@@ -58,56 +78,95 @@ REFERENCE = {
 
 
 @dataclass(frozen=True)
-class Size:
-    """How much of the reference protocol is run.
+class Settings:
+    """How much of the reference protocol a run does.
 
-    Poses: every ``angle_step``-th of the 360 angles and every ``height_step``-th of the
-    150 heights of the reference's cylindrical scan (so the aperture keeps its full
-    extent; the reference: 1, 1 = 54 000 poses). ``paths_per_pose`` Monte-Carlo paths,
-    ``shape`` voxels over the 0.4 x 0.4 x 0.3 m scene box (reference 125 x 125 x 94),
-    ``gd_iterations`` optimiser steps, ``samples`` surface samples per mesh for Chamfer.
+    Poses: every ``angle_step``-th of the 360 angles and every ``height_step``-th of the 150
+    heights of the reference's cylindrical scan (the aperture keeps its extent; reference
+    1, 1 = 54 000). ``paths_per_pose`` None = the simulator's fidelity default. ``shape``:
+    voxels over the scene box (reference 125 x 125 x 94). ``gd_iterations`` /
+    ``nbp_iterations``: optimiser steps. ``samples``: surface samples per mesh (Chamfer);
+    ``volume_samples``: GT volume samples of the reference protocol; ``view_resolution``:
+    image size for both protocols' image metrics (None = each protocol's own: 256 / 512).
+    ``sweep_methods``: methods of the SNR-sweep and bandwidth rows (None = all).
+    ``threshold_sweep``: also report each metric at its best τ (0.05 … 0.95).
     """
     angle_step: int
     height_step: int
-    paths_per_pose: int
+    paths_per_pose: int | None
     shape: tuple[int, int, int]
     gd_iterations: int
+    nbp_iterations: int
     samples: int = 20_000
+    volume_samples: int = 50_000
+    view_resolution: int | None = None
+    sweep_methods: tuple[str, ...] | None = None
+    threshold_sweep: bool = True
 
     @property
     def n_poses(self) -> int:
         return len(range(0, 360, self.angle_step)) * len(range(0, 150, self.height_step))
 
+    def digest(self) -> str:
+        """Short digest of these settings and the module-level simulation constants: part of
+        every file name, so files of other settings are never reused."""
+        key = json.dumps({"settings": asdict(self), "simulation": SIMULATION, "pulses": PULSES,
+                          "threshold": THRESHOLD, "crop_z": CROP_Z, "bounds": GRID_BOUNDS},
+                         sort_keys=True, default=str)
+        return hashlib.sha1(key.encode()).hexdigest()[:8]
+
 
 SIZES = {
-    "default": Size(angle_step=2, height_step=2, paths_per_pose=4000, shape=(125, 125, 94),
-                    gd_iterations=600),
-    "quick": Size(angle_step=5, height_step=5, paths_per_pose=1000, shape=(41, 41, 31),
-                  gd_iterations=60, samples=5000),
+    "default": Settings(angle_step=2, height_step=2, paths_per_pose=None, shape=(125, 125, 94),
+                        gd_iterations=600, nbp_iterations=600),
+    "quick": Settings(angle_step=10, height_step=10, paths_per_pose=300, shape=(25, 25, 19),
+                      gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
+                      view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False),
 }
 
 
 @dataclass(frozen=True)
 class Method:
-    """A reconstructor: ``<module>.solve(dataset, grid, progress=False, **options(size))``."""
+    """A reconstructor: ``<module>.solve(dataset, grid, progress=False, **options(settings))``."""
     key: str
     label: str                       # the reference's row name (REFERENCE)
     module: str
-    options: Callable[[Size], dict] = field(default=lambda size: {})
+    options: Callable[[Settings], dict] = field(default=lambda s: {})
 
 
-# One line per method. Methods whose module does not exist (yet) are reported as missing.
 METHODS = (
     Method("bp", "Backprojection", "recon.backprojection"),
     Method("gd", "Gradient Descent", "recon.gradient_descent",
-           lambda size: {"iterations": size.gd_iterations, "seed": SEED}),
+           lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"]}),
     Method("pfa", "PFA", "recon.pfa"),
-    Method("nbp", "Neural BP (Ours)", "recon.neural_backprojection"),
+    Method("nbp", "Neural BP (Ours)", "recon.nbp",
+           lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"]}),
 )
+METHOD_BY_KEY = {m.key: m for m in METHODS}
+
+
+@dataclass(frozen=True)
+class Cell:
+    method: str
+    shape: str
+    snr_db: float
+    bandwidth: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}_{self.shape}_{self.bandwidth}_{self.snr_db:g}dB"
+
+    @property
+    def dataset_name(self) -> str:
+        return f"{self.shape}_{self.bandwidth}_{self.snr_db:g}dB"
 
 
 def available_methods(keys: list[str] | None) -> tuple[list[Method], list[str]]:
     """(methods whose module imports and has ``solve``, notes on the others)."""
+    if keys is not None:
+        unknown = set(keys) - set(METHOD_BY_KEY)
+        if unknown:
+            raise SystemExit(f"--methods: unknown {sorted(unknown)}; choose from {list(METHOD_BY_KEY)}")
     chosen, notes = [], []
     for m in METHODS:
         if keys is not None and m.key not in keys:
@@ -117,32 +176,42 @@ def available_methods(keys: list[str] | None) -> tuple[list[Method], list[str]]:
         except ModuleNotFoundError as exc:
             if exc.name != m.module:
                 raise
-            notes.append(f"{m.label}: not run ({m.module} does not exist yet)")
+            notes.append(f"{m.label}: not run ({m.module} does not exist)")
             continue
         if not callable(getattr(module, "solve", None)):
             notes.append(f"{m.label}: not run ({m.module} has no solve())")
             continue
         chosen.append(m)
-    if keys is not None:
-        unknown = set(keys) - {m.key for m in METHODS}
-        if unknown:
-            raise SystemExit(f"--methods: unknown {sorted(unknown)}; choose from "
-                             f"{[m.key for m in METHODS]}")
     return chosen, notes
 
 
-def scene_spec(name: str, out: Path, source: str) -> tuple[str, str] | None:
+def cells_of(methods: list[str], shapes: list[str], settings: Settings) -> list[Cell]:
+    """Every cell of the table: all methods x shapes at the main SNR and bandwidth, then the
+    SNR sweep and the other bandwidths for the first shape (the bunny when at hand)."""
+    cells = [Cell(m, s, MAIN_SNR_DB, MAIN_BANDWIDTH) for s in shapes for m in methods]
+    sweep = [m for m in methods if settings.sweep_methods is None or m in settings.sweep_methods]
+    if shapes:
+        cells += [Cell(m, shapes[0], snr, MAIN_BANDWIDTH) for snr in SWEEP_SNR_DB
+                  if snr != MAIN_SNR_DB for m in sweep]
+        cells += [Cell(m, shapes[0], MAIN_SNR_DB, bw) for bw in SWEEP_BANDWIDTHS for m in sweep]
+    return cells
+
+
+# ------------------------------------------------------------------------ one cell
+
+def scene_spec(name: str, out: Path, source: str = "auto") -> tuple[str, str] | None:
     """(scene spec for load_scene, description of its source), or None if unavailable.
 
-    The shared meshes are the reference's GT meshes, already in the rig frame at the
-    reference's scale (REFERENCE_SPEC §6.3), so they are used as they are (``fit = false``)
-    on the reference's ground plane (0.4 x 0.4 m, albedo 1).
+    The shared meshes are the reference's GT meshes in the rig frame at the reference's scale,
+    used as they are (``fit = false``) on the reference's ground plane (0.4 x 0.4 m, albedo 1).
     """
     mesh = SHARED_MESHES / f"{name}.obj"
     if source in ("auto", "shared") and mesh.is_file():
-        toml = out / f"{name}.toml"
-        toml.write_text(f'name = "{name}"\nground = true\n\n[[object]]\n'
-                        f'mesh = "{mesh}"\nfit = false\n')
+        toml = out / "data" / f"{name}.toml"
+        toml.parent.mkdir(parents=True, exist_ok=True)
+        text = f'name = "{name}"\nground = true\n\n[[object]]\nmesh = "{mesh}"\nfit = false\n'
+        if not toml.is_file() or toml.read_text() != text:
+            toml.write_text(text)
         return str(toml), f"shared mesh {mesh.name}"
     if source == "shared":
         raise SystemExit(f"scene {name!r}: {mesh} not found (--scene-source shared)")
@@ -151,42 +220,115 @@ def scene_spec(name: str, out: Path, source: str) -> tuple[str, str] | None:
     return None
 
 
-def cylindrical_poses(size: Size, box):
+def cylindrical_poses(settings: Settings, box):
     """Every angle_step-th angle and height_step-th height of the reference's 360 x 150 scan."""
     from sonarsim.geometry import CYLINDRICAL_ANGLES, cylindrical_grid, rig_poses
     angles, heights = cylindrical_grid()
     idx = np.arange(angles.size)
-    keep = ((idx % CYLINDRICAL_ANGLES) % size.angle_step == 0) & \
-           ((idx // CYLINDRICAL_ANGLES) % size.height_step == 0)
+    keep = ((idx % CYLINDRICAL_ANGLES) % settings.angle_step == 0) & \
+           ((idx // CYLINDRICAL_ANGLES) % settings.height_step == 0)
     return rig_poses(angles[keep], heights[keep], box=box)
 
 
-def simulate_scene(spec_text: str, size: Size, path: Path) -> list[str]:
-    """Simulate the dataset (single scattering, as the reference's Table 2 data); returns
-    the scene warnings (e.g. a mesh reaching a millimetre below the ground)."""
+def simulation_settings(cell: Cell, settings: Settings):
+    from sonarsim import simulate
+    values = {k: v for k, v in SIMULATION.items() if v is not None}
+    values.update(pulse=simulate.make_pulse(PULSES[cell.bandwidth], 100e3), snr_db=cell.snr_db,
+                  paths_per_pose=settings.paths_per_pose,
+                  extra_meta={"poses": f"cylindrical 360x150, every {settings.angle_step} "
+                                       f"angle(s), every {settings.height_step} height(s)"})
+    known = {f.name for f in fields(simulate.SimulationSettings)}
+    return simulate.SimulationSettings(**{k: v for k, v in values.items() if k in known})
+
+
+def ensure_dataset(cell: Cell, settings: Settings, out: Path, source: str = "auto"
+                   ) -> tuple[Path, list[str], str]:
+    """(dataset path, notes, scene source): simulated once per (shape, SNR, bandwidth,
+    settings) and reused (the simulator writes atomically: an existing file is complete)."""
     from sonarsim.scene import load_scene
-    from sonarsim.simulate import SimulationSettings, make_pulse, simulate
+    from sonarsim.simulate import simulate
+    found = scene_spec(cell.shape, out, source)
+    if found is None:
+        raise SystemExit(f"scene {cell.shape}: no shared mesh and no shipped scene")
+    spec_text, src = found
+    path = out / "data" / f"{cell.dataset_name}_{settings.digest()}.h5"
+    path.parent.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         spec = load_scene(spec_text)
-    poses = cylindrical_poses(size, spec.box)
-    settings = SimulationSettings(
-        pulse=make_pulse(PULSE, 100e3), snr_db=SNR_DB, paths_per_pose=size.paths_per_pose,
-        bounces=1, bounce_set=(1,), seed=SEED,
-        extra_meta={"poses": f"cylindrical 360x150, every {size.angle_step} angle(s), "
-                             f"every {size.height_step} height(s)"})
-    if path.exists():
-        path.unlink()
-    simulate(spec, poses, path, settings, resume=False, progress=False)
-    return [str(w.message).split(": ", 1)[-1] for w in caught]
+    notes = [f"scene {cell.shape}: {str(w.message).split(': ', 1)[-1]}" for w in caught]
+    if not path.is_file():
+        simulate(spec, cylindrical_poses(settings, spec.box), path,
+                 simulation_settings(cell, settings), resume=True, progress=False)
+    return path, notes, src
 
 
-def evaluate_volume(volume_path: Path, gt, size: Size) -> dict:
+def evaluate_both(volume_path: Path, gt, settings: Settings) -> dict:
+    """{protocol: metrics} of one volume (``recon evaluate``'s evaluate_file).
+
+    exact: crop z >= 5 mm (the ground plane is not in the GT meshes), sweep of τ;
+    reference: as the reference evaluates, the whole box (ground included), IoU sweep.
+    """
     from recon.commands.evaluate import evaluate_file
-    crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3]
-    res = evaluate_file(volume_path, gt, threshold=THRESHOLD, samples=size.samples, crop=crop)
-    res.pop("sweep", None)
-    return res
+    out = {}
+    for protocol in PROTOCOLS:
+        crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3] if protocol == "exact" else None
+        res = evaluate_file(volume_path, gt, threshold=THRESHOLD, samples=settings.samples,
+                            crop=crop, protocol=protocol, volume_samples=settings.volume_samples,
+                            view_resolution=settings.view_resolution,
+                            sweep=settings.threshold_sweep)
+        res.pop("sweep", None)
+        out[protocol] = res
+    return out
+
+
+def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: Settings,
+             out: Path, source: str = "auto") -> dict:
+    """Compute one cell (or load it if ``<out>/cells/<cell>_<digest>.json`` exists) and return
+    its result dict: cell keys, ``time_s`` (reconstruction), ``volume`` path, ``exact`` and
+    ``reference`` metrics, ``notes``. Independent of every other cell (safe to run in
+    parallel: files are written atomically)."""
+    from sonarsim.atomic import atomic_path
+    cell = Cell(method, shape, float(snr_db), bandwidth)
+    digest = settings.digest()
+    record = out / "cells" / f"{cell.name}_{digest}.json"
+    if record.is_file():
+        return json.loads(record.read_text())
+    from recon import metrics
+    from recon.grid import Grid
+    from sonarsim.dataset import SonarDataset, Volume
+    m = METHOD_BY_KEY[method]
+    data, notes, src = ensure_dataset(cell, settings, out, source)
+    volume_path = out / "volumes" / f"{cell.name}_{digest}.h5"
+    volume_path.parent.mkdir(parents=True, exist_ok=True)
+    ds = SonarDataset.read(data)
+    elapsed = None
+    if volume_path.is_file():
+        vol = Volume.read(volume_path)
+        elapsed = vol.params.get("table2_time_s")
+    else:
+        grid = Grid(np.asarray(GRID_BOUNDS, dtype=np.float64), settings.shape)
+        t0 = time.perf_counter()
+        vol = importlib.import_module(m.module).solve(ds, grid, progress=False,
+                                                      **m.options(settings))
+        elapsed = time.perf_counter() - t0
+        vol.params["table2_time_s"] = float(elapsed)
+        vol.write(volume_path)
+    gt = metrics.load_gt_mesh(data)
+    t0 = time.perf_counter()
+    result = {"cell": cell.name, "method": method, "label": m.label, "shape": shape,
+              "snr_db": float(snr_db), "bandwidth": bandwidth, "settings_digest": digest,
+              "scene_source": src, "dataset": str(data), "volume": str(volume_path),
+              "time_s": elapsed, "measured_snr_db": ds.meta.get("effective_snr_db", ds.snr_db),
+              "mc_snr_db": ds.meta.get("mc_snr_db"), "n_pings": int(ds.n_pings),
+              "notes": notes, **evaluate_both(volume_path, gt, settings)}
+    result["evaluate_s"] = time.perf_counter() - t0
+    from recon.commands.evaluate import json_safe
+    record.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(record) as tmp:
+        Path(tmp).write_text(json.dumps(json_safe(result), indent=1, allow_nan=False,
+                                        default=str))
+    return json.loads(record.read_text())
 
 
 # ------------------------------------------------------------------------------ outputs
@@ -203,103 +345,119 @@ def finite(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-MEAN_KEYS = ("iou", "best_iou", "chamfer_sq", "best_chamfer_sq", "chamfer_m",
-             "psnr_depth", "ssim_depth", "psnr_shaded")
+TABLE_KEYS = {"chamfer_sq": ".2e", "iou": ".4f", "lpips": ".4f", "psnr_depth": ".3f"}
 
 
-def method_means(rows: list[dict], methods: list[Method]) -> dict:
-    """Per method, the mean of each metric over scenes (None if any scene lacks it)."""
-    means = {}
-    for m in methods:
-        sel = [r for r in rows if r["method"] == m.key]
-        means[m.key] = {k: (float(np.mean([r[k] for r in sel]))
-                            if sel and all(finite(r.get(k)) for r in sel) else None)
-                        for k in MEAN_KEYS}
-    return means
+def mean_over(rows: list[dict], protocol: str, key: str):
+    """Mean of ``row[protocol][key]`` over rows, None if any row lacks a finite value."""
+    vals = [r[protocol].get(key) for r in rows]
+    return float(np.mean(vals)) if vals and all(finite(v) for v in vals) else None
 
 
-def write_markdown(path: Path, rows, means, methods, settings: dict, notes: list[str]) -> None:
-    best = lambda r, k, spec: (f"{fmt(r.get(f'best_{k}'), spec)} @ "
-                               f"{fmt(r.get(f'best_{k}_threshold'), '.2f')}")
-    lines = ["# Table 2 (reference protocol, reduced)", "",
-             f"Settings: {settings['summary']}.", "",
-             f"Metrics at τ = {THRESHOLD} and at each metric's best τ (sweep 0.05…0.95), "
-             f"evaluated on z ≥ {CROP_Z * 1000:g} mm (ground plane left out). Chamfer = "
-             "squared, reference definition (m²); PSNR/SSIM of depth renders.", "",
-             "| scene | method | IoU | IoU best @ τ | Chamfer² (m²) | Chamfer² best @ τ "
-             "| Chamfer (mm) | PSNR depth (dB) | SSIM depth | time (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['scene']} | {r['label']} | {fmt(r['iou'], '.4f')} | "
-            f"{best(r, 'iou', '.4f')} | {fmt(r['chamfer_sq'], '.3e')} | "
-            f"{best(r, 'chamfer_sq', '.3e')} | "
-            f"{fmt(None if r['chamfer_m'] is None else r['chamfer_m'] * 1e3, '.2f')} | "
-            f"{fmt(r.get('psnr_depth'), '.2f')} | {fmt(r.get('ssim_depth'), '.3f')} | "
-            f"{r['time_s']:.0f} |")
-    for m in methods:
-        a = means[m.key]
-        lines.append(
-            f"| **mean** | **{m.label}** | {fmt(a['iou'], '.4f')} | {fmt(a['best_iou'], '.4f')} | "
-            f"{fmt(a['chamfer_sq'], '.3e')} | {fmt(a['best_chamfer_sq'], '.3e')} | "
-            f"{fmt(None if a['chamfer_m'] is None else a['chamfer_m'] * 1e3, '.2f')} | "
-            f"{fmt(a['psnr_depth'], '.2f')} | {fmt(a['ssim_depth'], '.3f')} | |")
-    lines += ["", "Reference (paper Table 2, REFERENCE_SPEC §7.2: mean over 8 simulated "
-              "scenes, 54 000 poses, 125 × 125 × 94 voxels; their IoU GT is 50 000 random "
-              "volume samples, which caps a perfect score near 0.6–0.7, see "
-              "docs/evaluation.md):", "",
-              "| method | IoU | Chamfer² (m²) | LPIPS | PSNR (dB) |", "|---|---|---|---|---|"]
-    for label, ref in REFERENCE.items():
-        lines.append(f"| {label} | {ref['iou']:.4f} | {ref['chamfer_sq']:.2e} | "
-                     f"{ref['lpips']:.4f} | {ref['psnr']:.3f} |")
+def main_rows(results: list[dict]) -> list[dict]:
+    return [r for r in results if r["snr_db"] == MAIN_SNR_DB and r["bandwidth"] == MAIN_BANDWIDTH]
+
+
+def write_markdown(path: Path, results, methods, summary: str, notes: list[str]) -> None:
+    main = main_rows(results)
+    shapes = sorted({r["shape"] for r in main})
+    lines = ["# Table 2", "", f"Settings: {summary}.", "",
+             f"Threshold τ = {THRESHOLD} on the min–max-normalised magnitude; IoU best-τ values "
+             "are in the CSV/JSON. LPIPS is not computed (n/a; docs/evaluation.md). PSNR = depth "
+             "renders. Chamfer = squared, mean each way, summed (m²).", ""]
+    for protocol in PROTOCOLS:
+        title = {"reference": "the reference's protocol (`recon evaluate --protocol reference`)",
+                 "exact": "the exact protocol (`recon evaluate`, ground left out: z ≥ 5 mm)"}
+        lines += [f"## Mean over {', '.join(shapes)} at 20 kHz / 20 dB — {title[protocol]}", "",
+                  "| Method | Chamfer ↓ | IoU ↑ | LPIPS ↓ | PSNR ↑ | | published: Chamfer "
+                  "| IoU | LPIPS | PSNR |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for m in methods:
+            sel = [r for r in main if r["method"] == m.key]
+            ref = REFERENCE[m.label]
+            ours = " | ".join(fmt(mean_over(sel, protocol, k), spec)
+                              for k, spec in TABLE_KEYS.items())
+            lines.append(f"| {m.label} | {ours} | | {ref['chamfer_sq']:.2e} | {ref['iou']:.4f} "
+                         f"| {ref['lpips']:.4f} | {ref['psnr']:.3f} |")
+        lines.append("")
+    lines += ["## Per shape (20 kHz / 20 dB)", "",
+              "| shape | method | protocol | Chamfer | IoU | IoU best @ τ | PSNR depth | "
+              "SSIM depth | time (s) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(main, key=lambda r: (r["shape"], [m.key for m in methods].index(r["method"]))):
+        for protocol in PROTOCOLS:
+            e = r[protocol]
+            lines.append(
+                f"| {r['shape']} | {r['label']} | {protocol} | {fmt(e.get('chamfer_sq'), '.2e')} "
+                f"| {fmt(e.get('iou'), '.4f')} | {fmt(e.get('best_iou'), '.4f')} @ "
+                f"{fmt(e.get('best_iou_threshold'), '.2f')} | {fmt(e.get('psnr_depth'), '.2f')} | "
+                f"{fmt(e.get('ssim_depth'), '.3f')} | {fmt(r.get('time_s'), '.1f')} |")
+    sweep = [r for r in results if r not in main]
+    if sweep:
+        lines += ["", f"## SNR sweep and bandwidth ({sweep[0]['shape']}, reference protocol)", "",
+                  "| method | bandwidth | SNR (dB) | measured SNR (dB) | Chamfer | IoU | PSNR depth |",
+                  "|---|---|---|---|---|---|---|"]
+        shape = sweep[0]["shape"]
+        rows = [r for r in results if r["shape"] == shape]
+        for r in sorted(rows, key=lambda r: (r["method"], r["bandwidth"], r["snr_db"])):
+            if r in main and not any(s["method"] == r["method"] for s in sweep):
+                continue
+            e = r["reference"]
+            lines.append(f"| {r['label']} | {r['bandwidth']} | {r['snr_db']:g} | "
+                         f"{fmt(r.get('measured_snr_db'), '.1f')} | "
+                         f"{fmt(e.get('chamfer_sq'), '.2e')} | {fmt(e.get('iou'), '.4f')} | "
+                         f"{fmt(e.get('psnr_depth'), '.2f')} |")
     if notes:
-        lines += ["", "Notes:", ""] + [f"* {n}" for n in notes]
+        lines += ["", "Notes:", ""] + [f"* {n}" for n in sorted(set(notes))]
     path.write_text("\n".join(lines) + "\n")
 
 
-CSV_KEYS = ("iou", "best_iou", "best_iou_threshold", "chamfer_sq", "best_chamfer_sq",
-            "best_chamfer_sq_threshold", "chamfer_m", "accuracy_m", "completeness_m",
-            "normal_consistency", "psnr_depth", "ssim_depth", "psnr_shaded", "ssim_shaded",
-            "lpips", "empty", "time_s")
+CSV_KEYS = ("iou", "best_iou", "best_iou_threshold", "mesh_iou", "chamfer_sq", "chamfer_m",
+            "psnr_depth", "ssim_depth", "psnr_shaded", "ssim_shaded", "lpips", "empty")
 
 
-def write_csv(path: Path, rows, means, methods) -> None:
+def write_csv(path: Path, results) -> None:
     def cell(v):
         return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(("source", "scene", "method", "threshold") + CSV_KEYS)
-        for r in rows:
-            w.writerow(["ours", r["scene"], r["label"], THRESHOLD]
-                       + [cell(r.get(k)) for k in CSV_KEYS])
-        for m in methods:
-            w.writerow(["ours", "mean", m.label, THRESHOLD]
-                       + [cell(means[m.key].get(k)) for k in CSV_KEYS])
+        w.writerow(("source", "protocol", "shape", "method", "snr_db", "bandwidth", "threshold")
+                   + CSV_KEYS + ("time_s",))
+        for r in results:
+            for protocol in PROTOCOLS:
+                w.writerow(["ours", protocol, r["shape"], r["label"], r["snr_db"], r["bandwidth"],
+                            THRESHOLD] + [cell(r[protocol].get(k)) for k in CSV_KEYS]
+                           + [cell(r.get("time_s"))])
         for label, ref in REFERENCE.items():
-            w.writerow(["reference", "mean of 8", label, ""]
-                       + [cell(ref.get(k, ref["psnr"] if k == "psnr_depth" else None))
-                          for k in CSV_KEYS])
+            values = {"iou": ref["iou"], "chamfer_sq": ref["chamfer_sq"], "lpips": ref["lpips"],
+                      "psnr_depth": ref["psnr"]}
+            w.writerow(["published", "reference", "mean of 8", label, MAIN_SNR_DB,
+                        MAIN_BANDWIDTH, ""] + [cell(values.get(k)) for k in CSV_KEYS] + [""])
 
 
-def write_figures(out: Path, rows, means, methods, scenes: dict[str, dict]) -> list[Path]:
+def write_figure(path: Path, results, methods) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from recon import export, views
+    from recon import export, metrics, views
     from sonarsim.dataset import Volume
 
+    main = main_rows(results)
+    shapes = sorted({r["shape"] for r in main})
     cams = views.Turntable(n_views=8, resolution=160)
     view = 1                                             # azimuth 45°
     n_cols = 1 + 2 * len(methods)
-    fig, axs = plt.subplots(len(scenes), n_cols, figsize=(2.3 * n_cols, 2.5 * len(scenes)),
+    fig, axs = plt.subplots(len(shapes), n_cols, figsize=(2.3 * n_cols, 2.5 * len(shapes)),
                             squeeze=False, constrained_layout=True)
     crop_box = np.array([[-1e3, 1e3], [-1e3, 1e3], [CROP_Z, 1e3]])
-    for i, (scene, info) in enumerate(scenes.items()):
-        axs[i, 0].imshow(views.render_views(info["gt"], cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
-        axs[i, 0].set_title(f"{scene}: GT", fontsize=8)
+    for i, shape in enumerate(shapes):
+        row = [r for r in main if r["shape"] == shape]
+        gt = metrics.load_gt_mesh(row[0]["dataset"])
+        axs[i, 0].imshow(views.render_views(gt, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
+        axs[i, 0].set_title(f"{shape}: GT", fontsize=8)
         for j, m in enumerate(methods):
-            r = next(r for r in rows if r["scene"] == scene and r["method"] == m.key)
-            vol = Volume.read(info["volumes"][m.key])
+            r = next((r for r in row if r["method"] == m.key), None)
+            if r is None:
+                continue
+            vol = Volume.read(r["volume"])
             v, b = export.crop_volume(vol.volume, vol.bounds, crop_box)
             mag = export.normalized_magnitude(v)
             ax = axs[i, 1 + 2 * j]
@@ -310,35 +468,14 @@ def write_figures(out: Path, rows, means, methods, scenes: dict[str, dict]) -> l
             mesh = export.mesh_from_volume(v, b, THRESHOLD)
             ax = axs[i, 2 + 2 * j]
             ax.imshow(views.render_views(mesh, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
-            ax.set_title(f"τ={THRESHOLD}: IoU {fmt(r['iou'], '.3f')}, "
-                         f"C² {fmt(r['chamfer_sq'], '.1e')}", fontsize=8)
+            e = r["reference"]
+            ax.set_title(f"IoU {fmt(e.get('iou'), '.3f')}, C² {fmt(e.get('chamfer_sq'), '.1e')}",
+                         fontsize=8)
     for ax in axs.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
-    paths = [out / "table2.png", out / "table2_bars.png"]
-    fig.savefig(paths[0], dpi=100)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
-
-    panels = [("iou", "IoU ↑", "iou", False), ("best_iou", "IoU at best τ ↑", "iou", False),
-              ("chamfer_sq", "Chamfer² (m²) ↓", "chamfer_sq", True),
-              ("psnr_depth", "PSNR depth (dB) ↑", "psnr", False)]
-    fig, axs = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 3.2),
-                            constrained_layout=True)
-    labels = list(REFERENCE)
-    x = np.arange(len(labels))
-    by_label = {m.label: m.key for m in methods}
-    for ax, (key, title, ref_key, log) in zip(axs, panels):
-        ours = [means[by_label[l]][key] if l in by_label else None for l in labels]
-        ax.bar(x - 0.2, [REFERENCE[l][ref_key] for l in labels], 0.4, label="reference")
-        ax.bar(x + 0.2, [v if v is not None else 0.0 for v in ours], 0.4, label="ours (mean)")
-        ax.set_xticks(x, [l.replace(" (Ours)", "") for l in labels], rotation=30, fontsize=7)
-        ax.set_title(title, fontsize=9)
-        if log:
-            ax.set_yscale("log")
-    axs[0].legend(fontsize=7)
-    fig.savefig(paths[1], dpi=100)
-    plt.close(fig)
-    return paths
 
 
 # --------------------------------------------------------------------------------- main
@@ -348,18 +485,40 @@ def parse_args(argv):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "table2")
     ap.add_argument("--quick", action="store_true", help="the small CI size (SIZES['quick'])")
-    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--shapes", default=",".join(SHAPES))
     ap.add_argument("--scene-source", choices=("auto", "shared", "shipped"), default="auto",
                     help="auto: shared meshes where present, else shipped procedural scenes")
     ap.add_argument("--methods", default=None,
-                    help=f"comma list of {[m.key for m in METHODS]} (default: all available)")
-    ap.add_argument("--angle-step", type=int, help="override the size's angle step")
-    ap.add_argument("--height-step", type=int, help="override the size's height step")
+                    help=f"comma list of {list(METHOD_BY_KEY)} (default: all available)")
+    ap.add_argument("--no-sweep", action="store_true", help="only the 20 kHz / 20 dB cells")
+    ap.add_argument("--angle-step", type=int)
+    ap.add_argument("--height-step", type=int)
     ap.add_argument("--paths-per-pose", type=int)
     ap.add_argument("--shape", type=int, nargs=3)
     ap.add_argument("--gd-iterations", type=int)
+    ap.add_argument("--nbp-iterations", type=int)
     ap.add_argument("--samples", type=int)
+    ap.add_argument("--volume-samples", type=int)
+    ap.add_argument("--view-resolution", type=int, help="image size of both protocols' renders")
+    ap.add_argument("--sweep-methods", help="comma list: methods of the SNR/bandwidth rows")
+    ap.add_argument("--no-threshold-sweep", action="store_true",
+                    help="metrics at τ only (no best-τ sweep of the exact protocol)")
     return ap.parse_args(argv)
+
+
+def settings_from(args) -> Settings:
+    settings = SIZES["quick" if args.quick else "default"]
+    overrides = {k: getattr(args, k) for k in ("angle_step", "height_step", "paths_per_pose",
+                                               "gd_iterations", "nbp_iterations", "samples",
+                                               "volume_samples", "view_resolution")
+                 if getattr(args, k) is not None}
+    if args.sweep_methods:
+        overrides["sweep_methods"] = tuple(m for m in args.sweep_methods.split(",") if m)
+    if args.no_threshold_sweep:
+        overrides["threshold_sweep"] = False
+    if args.shape:
+        overrides["shape"] = tuple(args.shape)
+    return replace(settings, **overrides)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -367,86 +526,62 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     from sonarsim import runtime
     runtime.mitsuba()
-    from recon import metrics
-    from recon.grid import Grid
-    from sonarsim.dataset import SonarDataset
-
-    size = SIZES["quick" if args.quick else "default"]
-    overrides = {k: getattr(args, k) for k in ("angle_step", "height_step", "paths_per_pose",
-                                               "gd_iterations", "samples")
-                 if getattr(args, k) is not None}
-    if args.shape:
-        overrides["shape"] = tuple(args.shape)
-    size = replace(size, **overrides)
+    settings = settings_from(args)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     methods, notes = available_methods(args.methods.split(",") if args.methods else None)
     if not methods:
         raise SystemExit("no reconstruction method available")
-    summary = (f"{'quick' if args.quick else 'default'} size: cylindrical scan, every "
-               f"{size.angle_step} of 360 angles × every {size.height_step} of 150 heights = "
-               f"{size.n_poses} poses (reference 54 000), {size.paths_per_pose} paths/pose, "
-               f"single scattering, {PULSE} at {SNR_DB:g} dB SNR, grid "
-               f"{'×'.join(map(str, size.shape))}, GD {size.gd_iterations} iterations, "
-               f"{size.samples} Chamfer samples")
-    print(summary, flush=True)
-
-    rows, timings, scenes = [], {}, {}
-    for scene in [s for s in args.scenes.split(",") if s]:
-        found = scene_spec(scene, out, args.scene_source)
+    shapes = [s for s in args.shapes.split(",") if s]
+    usable = []
+    for s in shapes:
+        found = scene_spec(s, out, args.scene_source)
         if found is None:
-            notes.append(f"scene {scene}: skipped (no shared mesh and no shipped scene)")
-            continue
-        spec_text, source = found
-        data = out / f"{scene}.h5"
+            notes.append(f"scene {s}: skipped (no shared mesh and no shipped scene)")
+        else:
+            usable.append(s)
+            notes.append(f"scene {s}: {found[1]}")
+    if not usable:
+        raise SystemExit("no shape could be simulated")
+    if "bunny" in usable:       # the sweep shape: the bunny when at hand
+        usable.remove("bunny")
+        usable.insert(0, "bunny")
+    cells = cells_of([m.key for m in methods], usable, settings)
+    if args.no_sweep:
+        cells = [c for c in cells if c.snr_db == MAIN_SNR_DB and c.bandwidth == MAIN_BANDWIDTH]
+    summary = (f"{'quick' if args.quick else 'default'} size (digest {settings.digest()}): "
+               f"cylindrical scan, every {settings.angle_step} of 360 angles × every "
+               f"{settings.height_step} of 150 heights = {settings.n_poses} poses (reference "
+               f"54 000), paths/pose {settings.paths_per_pose or 'simulator default (mc_snr_db)'}, "
+               f"single scattering, grid {'×'.join(map(str, settings.shape))}, GD "
+               f"{settings.gd_iterations} / NBP {settings.nbp_iterations} iterations, "
+               f"{settings.samples} surface and {settings.volume_samples} volume samples")
+    print(summary, flush=True)
+    results = []
+    for cell in cells:
         t0 = time.perf_counter()
-        for w in simulate_scene(spec_text, size, data):
-            notes.append(f"scene {scene}: {w}")
-        timings[f"{scene}/simulate"] = time.perf_counter() - t0
-        gt = metrics.load_gt_mesh(data)
-        ds = SonarDataset.read(data)
-        grid = Grid(np.asarray([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]]), size.shape)
-        scenes[scene] = {"gt": gt, "source": source, "volumes": {}}
-        for m in methods:
-            t0 = time.perf_counter()
-            vol = importlib.import_module(m.module).solve(ds, grid, progress=False,
-                                                          **m.options(size))
-            elapsed = time.perf_counter() - t0
-            path = out / f"{scene}_{m.key}.h5"
-            vol.write(path)
-            scenes[scene]["volumes"][m.key] = path
-            timings[f"{scene}/{m.key}"] = elapsed
-            t0 = time.perf_counter()
-            res = evaluate_volume(path, gt, size)
-            timings[f"{scene}/{m.key}/evaluate"] = time.perf_counter() - t0
-            rows.append({**res, "scene": scene, "scene_source": source, "method": m.key,
-                         "label": m.label, "time_s": elapsed, "solver_params": vol.params})
-            print(f"{scene:>9} {m.key:>4}: {elapsed:6.1f} s, IoU {fmt(res['iou'], '.3f')} "
-                  f"(best {fmt(res['best_iou'], '.3f')}), Chamfer² {fmt(res['chamfer_sq'], '.2e')}"
-                  f" (best {fmt(res['best_chamfer_sq'], '.2e')}), PSNR depth "
-                  f"{fmt(res.get('psnr_depth'), '.2f')} dB", flush=True)
-        del ds
-    if not rows:
-        raise SystemExit("no scene could be evaluated")
-    for scene, info in scenes.items():
-        notes.append(f"scene {scene}: {info['source']}")
-    means = method_means(rows, methods)
-    settings = {"summary": summary, "size": asdict(size), "threshold": THRESHOLD,
-                "crop_z_m": CROP_Z, "snr_db": SNR_DB, "pulse": PULSE, "seed": SEED}
-    write_markdown(out / "table2.md", rows, means, methods, settings, notes)
-    write_csv(out / "table2.csv", rows, means, methods)
-    t0 = time.perf_counter()
-    write_figures(out, rows, means, methods, scenes)
-    timings["figures"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
+        r = run_cell(cell.method, cell.shape, cell.snr_db, cell.bandwidth, settings, out,
+                     args.scene_source)
+        results.append(r)
+        notes += r.get("notes", [])
+        e, x = r["reference"], r["exact"]
+        print(f"{cell.name:>28}: {time.perf_counter() - t0:6.1f} s | reference: IoU "
+              f"{fmt(e['iou'], '.3f')}, C² {fmt(e['chamfer_sq'], '.2e')}, PSNR "
+              f"{fmt(e.get('psnr_depth'), '.2f')} | exact: IoU {fmt(x['iou'], '.3f')}, C² "
+              f"{fmt(x['chamfer_sq'], '.2e')}", flush=True)
+    write_markdown(out / "table2.md", results, methods, summary, notes)
+    write_csv(out / "table2.csv", results)
+    write_figure(out / "table2.png", results, methods)
+    total = time.perf_counter() - t_start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     from recon.commands.evaluate import json_safe
     (out / "table2.json").write_text(json.dumps(json_safe(
-        {"settings": settings, "rows": rows, "means": means, "notes": notes,
-         "reference": REFERENCE, "timings_s": timings, "peak_rss_mb": peak_mb}),
-        indent=1, allow_nan=False, default=str))
+        {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
+         "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,
+         "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
+         "peak_rss_mb": peak_mb}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())
-    print(f"total {timings['total']:.0f} s, peak RSS {peak_mb:.0f} MB; outputs in {out}")
+    print(f"total {total:.0f} s, peak RSS {peak_mb:.0f} MB; outputs in {out}")
     return 0
 
 

@@ -46,15 +46,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def evaluate_file(path: Path, gt_mesh, *, threshold: float, normalize: str = "minmax",
                   sweep: bool = True, images: bool = True, samples: int =
                   metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None,
-                  protocol: str = "exact", volume_samples: int = metrics.N_VOLUME_SAMPLES
-                  ) -> dict:
+                  protocol: str = "exact", volume_samples: int = metrics.N_VOLUME_SAMPLES,
+                  view_resolution: int | None = None) -> dict:
     """All metrics of one volume file (see :func:`recon.metrics.evaluate`, or
     :func:`recon.metrics.evaluate_reference` with ``protocol='reference'``).
 
     ``crop``: six numbers x0 x1 y0 y1 z0 z1 (m) or None. Image metrics render the
-    (cropped) reconstruction against the whole GT mesh.
+    (cropped) reconstruction against the whole GT mesh; ``view_resolution`` overrides the
+    protocol's image size (pixels, e.g. for quick runs).
     """
+    from dataclasses import replace
+
     from sonarsim.errors import InputError
+    from .. import views
     export.check_threshold(threshold)
     if protocol not in PROTOCOLS:
         raise InputError(f"protocol: choose one of {', '.join(PROTOCOLS)}, got {protocol!r}")
@@ -73,21 +77,24 @@ def evaluate_file(path: Path, gt_mesh, *, threshold: float, normalize: str = "mi
             sweep=metrics.DEFAULT_SWEEP if sweep else None, crop=box)
         result = {"volume": str(path), "method": vol.method, **result}
         if images:
-            from .. import views
-            result.update(views.image_metrics(gt_mesh, mesh, views.REFERENCE_VIEWS,
-                                              gaussian_ssim=True))
+            cams = views.REFERENCE_VIEWS
+            if view_resolution:
+                cams = replace(cams, resolution=int(view_resolution))
+            result.update(views.image_metrics(gt_mesh, mesh, cams, gaussian_ssim=True))
         return result
     result = metrics.evaluate(vol.volume, vol.bounds, gt_mesh, threshold=threshold,
                               sweep=metrics.DEFAULT_SWEEP if sweep else None,
                               normalization=normalize, n_samples=samples, seed=seed, crop=box)
     result = {"volume": str(path), "method": vol.method, "protocol": "exact", **result}
     if images:
-        from .. import views
         volume, bounds = vol.volume, vol.bounds
         if box is not None:
             volume, bounds = export.crop_volume(volume, bounds, box)
         mesh = export.mesh_from_volume(volume, bounds, threshold, normalize)
-        result.update(views.image_metrics(gt_mesh, mesh))
+        cams = views.Turntable()
+        if view_resolution:
+            cams = replace(cams, resolution=int(view_resolution))
+        result.update(views.image_metrics(gt_mesh, mesh, cams))
     return result
 
 
