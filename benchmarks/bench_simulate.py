@@ -76,9 +76,12 @@ def part_snr(spec, args) -> None:
           f"spread over the scan; seconds for all of them, 2 half-estimates each)\n")
     print("| bounces | bounce-1 estimator | density | time (s) | s/pose | MC SNR (dB) |")
     print("|---|---|---|---|---|---|")
+    # Bounce 1 alone, then all three bounces (with the surface estimator bounces >= 2
+    # continue from the surface samples, so the spacing sets their density too).
     configs = [((1,), "cone", Sampling(p, None)) for p in (10_000, 100_000, 1_000_000)]
-    configs += [((1,), "surface", Sampling(2, sp)) for sp in (10e-3, 5e-3, 2.5e-3, 1.25e-3)]
-    configs += [((1, 2, 3), "surface", Sampling(p, 5e-3)) for p in (10_000, 100_000)]
+    configs += [((1,), "surface", Sampling(2, sp)) for sp in (10e-3, 5e-3, 2.5e-3)]
+    configs += [((1, 2, 3), "cone", Sampling(p, None)) for p in (10_000, 100_000, 1_000_000)]
+    configs += [((1, 2, 3), "surface", Sampling(2, sp)) for sp in (8e-3, 4e-3, 2e-3)]
     for bounces, est, sampling in configs:
         s = sim.SimulationSettings(pulse=pulse_from_spec("lfm-20k", 100e3), bounces=max(bounces),
                                    paths_per_pose=sampling.paths_per_pose, bounce1=est,
@@ -87,9 +90,8 @@ def part_snr(spec, args) -> None:
         crop, window = sim.simulation_window(poses, spec, s.pulse, s.sound_speed, s.oversample)
         sim.measure_fidelity(scene, poses[:2], s, sampling, crop, window)   # compile
         r = sim.measure_fidelity(scene, poses, s, sampling, crop, window)
-        density = (f"{sampling.paths_per_pose} paths" if est == "cone" or len(bounces) > 1
-                   else "") + (f" {sampling.surface_spacing * 1e3:g} mm strata"
-                               if est == "surface" else "")
+        density = (f"{sampling.paths_per_pose} paths" if est == "cone"
+                   else f"{sampling.surface_spacing * 1e3:g} mm strata")
         print(f"| {','.join(map(str, bounces))} | {est} | {density.strip()} | "
               f"{r['seconds']:.1f} | {r['seconds'] / len(poses):.3f} | {r['mc_snr_db']:.1f} |",
               flush=True)

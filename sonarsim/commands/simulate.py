@@ -161,6 +161,6 @@ def run(args: argparse.Namespace) -> int:
              else f"effective SNR {meta.get('effective_snr_db', float('nan')):.1f} dB")
     print(f"wrote {out}: {len(poses)} pings, {noise}, Monte-Carlo SNR "
           f"{meta.get('mc_snr_db', float('nan')):.1f} dB after matched filtering "
-          f"({meta.get('paths_per_pose')} paths/pose), pulse {settings.pulse.spec}",
+          f"({(meta.get('sampling') or {}).get('sampling', '?')}), pulse {settings.pulse.spec}",
           file=sys.stderr)
     return 0
