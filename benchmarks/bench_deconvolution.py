@@ -1,0 +1,125 @@
+"""Benchmark of pulse deconvolution (recon.deconvolution): Wiener and INR.
+
+Wiener: seconds per ping on [N, T] waveforms against a straightforward NumPy version
+(ping by ping, full complex FFTs), whose output it must match. INR: seconds per Adam
+iteration and per ping·iteration for a batch of P pings × T samples, with the default
+network and the reference's (20 levels, 128 × 3 hidden), and peak memory (ru_maxrss of
+a fresh process per configuration).
+
+    .venv/bin/python benchmarks/bench_deconvolution.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+
+def _waveforms(n_pings, n_t, seed=0):
+    from recon import deconvolution as dc
+    from sonarsim import signals
+    rng = np.random.default_rng(seed)
+    p = signals.named_pulse("lfm-20k", 100e3)
+    w = np.zeros((n_pings, n_t))
+    for i in range(n_pings):
+        w[i, rng.integers(50, n_t - 50, 6)] = rng.uniform(0.3, 1.0, 6)
+    s, _ = signals.add_noise(dc.convolve(w, p), 20.0, rng)
+    return s.astype(np.float32), p
+
+
+def wiener_numpy(s, p, lam):
+    """Straightforward reference: one ping at a time, full complex FFTs, np.fft (the same
+    FFT length as recon.deconvolution, since the inverse filter's response wraps)."""
+    import scipy.fft
+    n_t = s.shape[1]
+    n = scipy.fft.next_fast_len(n_t + len(p) - 1, real=True)
+    P = np.fft.fft(p, n)
+    h = np.zeros(n)
+    h[0] = 1
+    h[1:(n + 1) // 2] = 2
+    if n % 2 == 0:
+        h[n // 2] = 1
+    out = np.empty(s.shape, np.complex64)
+    for i in range(len(s)):
+        W = np.fft.fft(s[i].astype(np.float64), n) * np.conj(P) / (np.abs(P) ** 2 + lam)
+        out[i] = np.fft.ifft(W * h)[:n_t]
+    return out
+
+
+def bench_wiener(n_pings, n_t, repeats):
+    from recon import deconvolution as dc
+    s, p = _waveforms(n_pings, n_t)
+    times, times_np = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out, info = dc.wiener(s, p)
+        times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = wiener_numpy(s, p, info["lambda"])
+        times_np.append(time.perf_counter() - t0)
+    err = float(np.max(np.abs(out - ref)) / np.max(np.abs(ref)))
+    t, t_np = float(np.median(times)), float(np.median(times_np))
+    print(f"wiener  {n_pings} x {n_t}: {t:.3f} s ({t / n_pings * 1e6:.1f} us/ping, "
+          f"{n_pings / t:.0f} pings/s); straightforward NumPy {t_np:.3f} s; "
+          f"speed-up {t_np / t:.1f}x; max rel. difference {err:.1e} (includes the λ estimate "
+          f"in the timed call)")
+
+
+def _inr_child(cfg: dict) -> dict:
+    from recon import deconvolution as dc
+    s, p = _waveforms(cfg["pings"], cfg["samples"])
+    target = s.astype(np.float64) / np.abs(s).max()
+    st = dc.INRSettings(iterations=cfg["warm"] + cfg["iters"], **cfg["net"])
+    stamps = []
+    dc.inr_batch(target, p, st, 0, lambda loss, parts: stamps.append(time.perf_counter()))
+    per_it = np.diff(stamps)[cfg["warm"]:]
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"s_per_iter": float(np.median(per_it)), "rss_mb": rss}
+
+
+def bench_inr(pings, samples, warm, iters):
+    configs = [("default (16 levels, 32 x 2)", {}),
+               ("reference net (20 levels, 128 x 3)",
+                {"n_levels": 20, "width": 128, "hidden_layers": 3})]
+    for label, net in configs:
+        cfg = {"pings": pings, "samples": samples, "warm": warm, "iters": iters, "net": net}
+        out = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)],
+                             capture_output=True, text=True, env=os.environ)
+        if out.returncode != 0:
+            print(f"inr {label}: failed: {out.stderr.strip().splitlines()[-1:]}")
+            continue
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        t = r["s_per_iter"]
+        print(f"inr     {label}, {pings} pings x {samples} samples: {t:.3f} s/iteration "
+              f"(median of {iters} after {warm} warm-up), {t / pings * 1e3:.2f} ms per ping-"
+              f"iteration, {pings * samples / t / 1e6:.2f} M samples/s; 300 iterations "
+              f"= {300 * t / 60:.1f} min; peak RSS {r['rss_mb']:.0f} MB")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="small sizes (a few seconds)")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(_inr_child(json.loads(args.child))))
+        return 0
+    print("machine: 2 shared cores, loaded by other work; timings are noisy (medians)")
+    if args.quick:
+        bench_wiener(360, 1000, 3)
+        bench_inr(36, 1000, 2, 3)
+    else:
+        bench_wiener(360, 1000, 5)
+        bench_wiener(4000, 1000, 3)
+        bench_inr(360, 1000, 3, 5)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
