@@ -478,6 +478,27 @@ def write_figure(path: Path, results, methods) -> None:
     plt.close(fig)
 
 
+def run_cells_on_cluster(cells, settings: "Settings", out: Path, source: str,
+                         scheduler: str) -> None:
+    """Compute the cells as jobs of sonarsim's batch engine (docs/batch.md) on a Dask cluster
+    (``scheduler``: an address, or 'local' for a LocalCluster): one task per dataset, and
+    one per cell that waits for its dataset. Each cell leaves its record in ``out/cells``,
+    where the sequential loop of :func:`main` then finds it."""
+    from sonarsim.batch_engine import Engine, Task
+    data, tasks = {}, []
+    for cell in cells:
+        key = f"data/{cell.dataset_name}"
+        data.setdefault(key, Task(key, ensure_dataset, (cell, settings, out, source)))
+        tasks.append(Task(f"cell/{cell.name}", run_cell, (cell.method, cell.shape, cell.snr_db,
+                          cell.bandwidth, settings, out, source), needs=(key,),
+                          pass_needed=False))
+    with Engine(None if scheduler == "local" else scheduler) as engine:
+        outcomes = engine.run(list(data.values()) + tasks)
+    failed = [f"{k}: {o.error}" for k, o in outcomes.items() if not o.ok]
+    if failed:
+        raise SystemExit("cells failed on the cluster:\n" + "\n".join(failed))
+
+
 # --------------------------------------------------------------------------------- main
 
 def parse_args(argv):
@@ -503,6 +524,10 @@ def parse_args(argv):
     ap.add_argument("--sweep-methods", help="comma list: methods of the SNR/bandwidth rows")
     ap.add_argument("--no-threshold-sweep", action="store_true",
                     help="metrics at τ only (no best-τ sweep of the exact protocol)")
+    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="compute the cells as jobs on this Dask scheduler ('local': a "
+                         "LocalCluster; default: one after the other in this process); "
+                         "see docs/batch.md")
     return ap.parse_args(argv)
 
 
@@ -557,6 +582,8 @@ def main(argv: list[str] | None = None) -> int:
                f"{settings.gd_iterations} / NBP {settings.nbp_iterations} iterations, "
                f"{settings.samples} surface and {settings.volume_samples} volume samples")
     print(summary, flush=True)
+    if args.scheduler:
+        run_cells_on_cluster(cells, settings, out, args.scene_source, args.scheduler)
     results = []
     for cell in cells:
         t0 = time.perf_counter()
