@@ -56,9 +56,9 @@ def _analytic_weights(n: int) -> np.ndarray:
 
 def _half_to_analytic(half: np.ndarray, n: int, n_keep: int) -> np.ndarray:
     """Analytic signal [.., n_keep] from the rfft ``half`` [.., n//2+1] of a real signal."""
-    full = np.zeros(half.shape[:-1] + (n,), dtype=np.complex128)
-    full[..., :half.shape[-1]] = half * _analytic_weights(n)
-    return scipy.fft.ifft(full, axis=-1)[..., :n_keep]
+    full = np.zeros(half.shape[:-1] + (n,), dtype=half.dtype)
+    full[..., :half.shape[-1]] = half * _analytic_weights(n).astype(half.real.dtype)
+    return scipy.fft.ifft(full, axis=-1, workers=-1)[..., :n_keep]
 
 
 def analytic(x: np.ndarray) -> np.ndarray:
@@ -102,7 +102,8 @@ def noise_and_signal_power(waveforms, pulse) -> tuple[float, float]:
     in_band = p2 >= p2.max() * 10 ** (IN_BAND_DB / 10)
     spec = np.zeros(p2.size)
     for b in range(0, s.shape[0], _ROWS_PER_BLOCK):
-        spec += (np.abs(scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1)) ** 2).sum(0)
+        block = scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1)
+        spec += (block.real ** 2 + block.imag ** 2).sum(0, dtype=np.float64)
     spec /= s.shape[0] * n_t
     if out_band.sum() >= max(4, 0.05 * p2.size):
         sigma2 = float(spec[out_band].mean())
@@ -142,8 +143,10 @@ def wiener(waveforms, pulse, lam: float | None = None) -> tuple[np.ndarray, dict
         lam = 1e-12 * float(np.max(np.abs(P) ** 2))
     H = np.conj(P) / (np.abs(P) ** 2 + lam)
     out = np.empty((n_pings, n_t), dtype=np.complex64)
+    # single precision (the output is complex64) and all threads
+    s32, H32 = s.astype(np.float32, copy=False), H.astype(np.complex64)
     for b in range(0, n_pings, _ROWS_PER_BLOCK):
-        half = scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1) * H
+        half = scipy.fft.rfft(s32[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1) * H32
         out[b:b + _ROWS_PER_BLOCK] = _half_to_analytic(half, n, n_t)
     info["lambda"] = float(lam)
     info["lambda_relative_to_peak_P2"] = float(lam / np.max(np.abs(P) ** 2))
