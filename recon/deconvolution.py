@@ -349,13 +349,11 @@ def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
     low-frequency content of real recordings) does not pull the fit."""
     band = pulse_band(pulse, target.shape[1], st.band_db)
     target = bandpass(target, band, pulse.size)
-    dr = None
     field_ = _Field(st, seed)
     dr, m = field_.dr, field_.m
     coords = _coords(m, *target.shape)
     losses = []
     decay = (st.lr_final / st.lr) ** (1.0 / max(st.iterations - 1, 1))
-    w_np = None
     for it in range(st.iterations):
         field_.set_lr(st.lr * decay ** it)
         w = field_(coords)
@@ -368,8 +366,8 @@ def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
         field_.opt.step()
         if on_iteration is not None:
             on_iteration(loss, parts)
-    w = field_(coords)
-    w_np = w.numpy().reshape(target.shape).astype(np.float32)
+    with dr.suspend_grad():
+        w_np = field_(coords).numpy().reshape(target.shape).astype(np.float32)
     return w_np, losses
 
 
