@@ -223,14 +223,16 @@ def test_cli_inr_two_iterations_end_to_end(tmp_path, capsys):
     _, path = _point_dataset(tmp_path, 12)
     out = tmp_path / "pd.h5"
     rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--iterations", "2",
-                     "--no-progress")
+                     "--pings-per-inr", "5", "--no-progress")
     assert rc == 0, err
     back = SonarDataset.read(out)
     info = back.meta["deconvolution_settings"]
     assert back.waveform_kind == "deconvolved_analytic" and back.n_pings == 12
     assert info["method"] == "inr" and info["iterations"] == 2
-    assert np.isfinite(info["loss_first"][0]) and info["loss_last"][0] < info["loss_first"][0]
-    assert np.all(np.isfinite(back.waveforms))
+    assert info["n_batches"] == 3 and len(info["loss_first"]) == 3    # 5 + 5 + 2 pings
+    for first, last in zip(info["loss_first"], info["loss_last"]):
+        assert np.isfinite(first) and last < first
+    assert np.all(np.isfinite(back.waveforms)) and np.all(np.abs(back.waveforms).max(1) > 0)
 
 
 def test_cli_bad_input_gives_one_line_errors(tmp_path, capsys):
