@@ -159,7 +159,7 @@ MIN_AUTO_SPACING = 2e-4           # m: the finest surface strata the automatic d
 PILOT_POSES = 24                  # poses of the pilot runs (evenly spread over the trajectory)
 PILOT_SCALES = (0.25, 1.0)        # pilot densities relative to the base density
 PILOT_REFINEMENTS = 1             # extra pilot runs at the planned density, to refit
-AUTO_MARGIN_DB = 1.0              # aim this much above the target (the pilot is an estimate)
+AUTO_MARGIN_DB = 1.5              # aim this much above the target (the pilot is an estimate)
 SHORTFALL_DB = 0.5                # a measured SNR this far below the target is reported
 # Keys measured during a run and added to the dataset's meta when it is finished.
 MEASURED_KEYS = ("mc_snr_db", "mc_noise_power", "effective_snr_db", "mc_snr_raw_db",
