@@ -187,11 +187,15 @@ def test_validation_names_the_bad_job_and_nothing_starts(tmp_path, mesh_dir, cap
 def test_local_cluster_plan_divides_cores():
     assert plan_local_cluster(20, cores=2, memory=2**35) == plan_local_cluster(20, cores=2)
     p = plan_local_cluster(20, cores=2)
-    assert (p.n_workers, p.threads, p.gpus) == (2, 1, ())
-    p = plan_local_cluster(3, cores=16)
+    assert (p.n_workers, p.threads, p.gpus) == (1, 2, ())
+    p = plan_local_cluster(20, cores=16)                         # 2 Dr.Jit threads each
+    assert (p.n_workers, p.threads) == (8, 2)
+    p = plan_local_cluster(3, cores=16)                          # at most one per task
     assert (p.n_workers, p.threads) == (3, 5)
     p = plan_local_cluster(50, cores=16, memory=6 * 2**30)      # 2 GiB per worker
     assert (p.n_workers, p.threads) == (3, 5)
+    p = plan_local_cluster(50, cores=16, workers=16)
+    assert (p.n_workers, p.threads) == (16, 1)
     p = plan_local_cluster(50, cores=16, gpus=["0", "1"])
     assert (p.n_workers, p.threads, p.gpus, p.variant) == (2, 8, ("0", "1"), "cuda_ad_mono")
     assert plan_local_cluster(50, cores=16, gpus=["0"], variant="llvm_ad_mono").gpus == ()

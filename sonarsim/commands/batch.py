@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Dask scheduler to submit to, e.g. tcp://host:8786 (default: a "
                              "local cluster); 'sequential' runs the jobs in this process")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="local cluster: worker processes (default: one per core, at most "
+                        help="local cluster: worker processes (default: one per 2 cores, at most "
                              "one per job, 2 GiB of memory each; one per GPU when GPUs exist)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="Dr.Jit threads per worker (default: the cores divided among the "
