@@ -37,6 +37,8 @@ def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PN
                 keep_complex: bool = False) -> dict[str, np.ndarray]:
     """Envelopes and matched-filter outputs of ``waveforms`` [N, T], computed in ping batches.
 
+    Complex ``waveforms`` are already pulse-compressed analytic signals (a deconvolved
+    dataset): they are shown as they are, not matched-filtered again.
     Returns ``raw_rows`` and ``mf_rows`` (float32 [R, T], R <= max_rows): the envelope
     |analytic(waveform)| and the matched-filter magnitude, each max-pooled over groups of
     ceil(N / max_rows) consecutive pings (for the PNGs); ``mf`` (float32 [N, T]) the full
@@ -53,11 +55,17 @@ def echo_images(waveforms: np.ndarray, pulse: np.ndarray, max_rows: int = MAX_PN
         out["mf_re"] = np.empty((n, t), np.float32)
         out["mf_im"] = np.empty((n, t), np.float32)
 
+    compressed = np.iscomplexobj(waveforms)   # deconvolved analytic signals: no second filter
     for start in range(0, n, chunk):
-        block = waveforms[start:start + chunk].astype(np.float64)
+        if compressed:
+            block = waveforms[start:start + chunk].astype(np.complex128)
+            envelope, mf = np.abs(block), block
+        else:
+            block = waveforms[start:start + chunk].astype(np.float64)
+            envelope = np.abs(signals.analytic(block))
+            mf = signals.matched_filter(block, pulse)
         r0, r1 = start // group, -(-(start + len(block)) // group)
-        out["raw_rows"][r0:r1] = max_pool_rows(np.abs(signals.analytic(block)), group)
-        mf = signals.matched_filter(block, pulse)
+        out["raw_rows"][r0:r1] = max_pool_rows(envelope, group)
         mag = np.abs(mf).astype(np.float32)
         out["mf"][start:start + len(block)] = mag
         out["mf_rows"][r0:r1] = max_pool_rows(mag, group)
@@ -185,7 +193,8 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     box = default_box(ds) if box is None else box
-    waveforms = np.asarray(ds.waveforms, dtype=np.float32)
+    waveforms = np.asarray(ds.waveforms)
+    waveforms = waveforms.astype(np.complex64 if np.iscomplexobj(waveforms) else np.float32)
     r0, r1 = _range_axis(ds)
     axis_note = (f"rows = pings 0..{waveforms.shape[0] - 1}; column k = sample start_sample+k "
                  f"(start_sample {ds.start_sample}) at t = (start_sample+k)/fs, fs = {ds.fs} Hz, "
@@ -196,7 +205,9 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
         save_figure(_echo_figure(to_db(images.pop("raw_rows"), dynamic_range_db), ds,
                                  "raw waveforms: envelope", dynamic_range_db, group),
                     out / "echo_raw.png"),
-        write_exr(out / "echo_raw.exr", {"Y": waveforms}, f"raw waveforms; {axis_note}"),
+        write_exr(out / "echo_raw.exr", {"Y": waveforms.real},
+                  ("real part of the deconvolved analytic waveforms" if np.iscomplexobj(waveforms)
+                   else "raw waveforms") + f"; {axis_note}"),
         save_figure(_echo_figure(to_db(images.pop("mf_rows"), dynamic_range_db), ds,
                                  "matched-filtered analytic signal", dynamic_range_db, group),
                     out / "echo_mf.png"),

@@ -216,3 +216,14 @@ def test_trajectory_box_is_the_one_the_dataset_records(dataset):
     np.testing.assert_array_equal(recorded.lo, [-0.1, -0.15, 0.0])
     np.testing.assert_array_equal(recorded.hi, [0.1, 0.15, 0.25])
     assert default_box(replace(dataset, meta={})).hi[2] == pytest.approx(0.3)  # SIM_BOX
+
+
+def test_deconvolved_dataset_is_pictured_as_stored(tmp_path):
+    """Complex (deconvolved analytic) waveforms are shown as they are, not filtered again."""
+    from sonarsim.plot import echo_images
+
+    rng = np.random.default_rng(0)
+    w = (rng.standard_normal((5, 64)) + 1j * rng.standard_normal((5, 64))).astype(np.complex64)
+    images = echo_images(w, np.ones(8), max_rows=5)
+    np.testing.assert_allclose(images["mf"], np.abs(w), rtol=1e-6)
+    np.testing.assert_allclose(images["raw_rows"], np.abs(w), rtol=1e-6)
