@@ -209,7 +209,8 @@ def plot_dataset(ds, out_dir: str | Path, *, box: "geometry.SceneBox | None" = N
                   ("real part of the deconvolved analytic waveforms" if np.iscomplexobj(waveforms)
                    else "raw waveforms") + f"; {axis_note}"),
         save_figure(_echo_figure(to_db(images.pop("mf_rows"), dynamic_range_db), ds,
-                                 "matched-filtered analytic signal", dynamic_range_db, group),
+                                 "deconvolved analytic signal" if np.iscomplexobj(waveforms)
+                                 else "matched-filtered analytic signal", dynamic_range_db, group),
                     out / "echo_mf.png"),
     ]
     channels = {"Y": images.pop("mf")}
