@@ -13,7 +13,7 @@ from sonarsim.errors import FormatError, InputError
 POINT = np.array([0.004, -0.006, 0.1015])
 TINY = dict(hash_levels=4, hash_base_resolution=4, hash_log2_size=12, mlp_width=16,
             mlp_hidden=1, bins_per_ping=16, n_rays=200, pings_per_iteration=4,
-            pings_per_chunk=2, beamwidth_deg=5.0)
+            pings_per_chunk=2, beamwidth_deg=5.0, init="random", warm_start_iterations=0)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
                "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
                "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--rays", "200",
                "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth", "5",
-               "--seed", "3", "--out", str(out), "--no-progress"])
+               "--seed", "3", "--init", "random", "--out", str(out), "--no-progress"])
     assert rc == 0 and "neural backprojection" in capsys.readouterr().out
     vol = Volume.read(out)
     assert vol.method == "nbp" and vol.shape == (9, 9, 9) and np.all(np.isfinite(vol.volume))
@@ -44,7 +44,7 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
     losses = []
     nbp.solve(point_ds, Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9)),
               iterations=30, seed=3, progress=False, lambertian=False, occlusion_scale=0.0,
-              callback=lambda i, r: losses.append(r["data"]), **dict(TINY, lr_final=None))
+              callback=lambda i, r: losses.append(r["data"]), **dict(TINY, lr=1e-2, lr_final=None))
     assert all(np.isfinite(losses))
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3])
 
@@ -121,7 +121,8 @@ def test_point_target_position_and_residual_below_backprojection(point_ds, grid)
     optimally scaled BP's (0.76 here; NBP 0.85 after 80 and 0.81 after 200 steps)."""
     kw = dict(lambertian=False, occlusion_scale=0.0, bins_per_ping=24, n_rays=600,
               beamwidth_deg=5.0, pings_per_iteration=8, pings_per_chunk=8, hash_levels=6,
-              hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3)
+              hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3, init="random",
+              warm_start_iterations=0)
     vol = nbp.solve(point_ds, grid, iterations=60, seed=2, progress=False, **kw)
     peak = np.unravel_index(np.argmax(np.abs(vol.volume)), grid.shape)
     assert np.all(np.abs(grid.position_of(peak) - POINT) <= grid.spacing + 1e-12)
