@@ -7,9 +7,10 @@ about a second or two on one core). The same manifest runs
 * ``sequential``: in this process, one job after the other, Dr.Jit on all cores
   (``--scheduler sequential``, no Dask): the baseline, like 20 ``simulate`` runs without
   paying 20 interpreter start-ups;
-* ``local-default``: the default LocalCluster (one worker process per core, cores / workers
-  Dr.Jit threads each);
-* ``local-1xN``: one worker process with all cores as Dr.Jit threads (Dask's overhead alone).
+* ``local-default``: the default LocalCluster (one worker process per 2 cores, cores /
+  workers Dr.Jit threads each; on 2 cores the same as ``local-1xN``);
+* ``local-1xN``: one worker process with all cores as Dr.Jit threads (Dask's overhead alone);
+* ``local-Nx1``: one worker process per core, one Dr.Jit thread each.
 
 Each configuration gets a fresh output directory, so every job runs; the time includes
 starting the cluster (workers import Mitsuba and compile the kernels, cached on disk after
@@ -18,7 +19,7 @@ The start-up (cluster, and Mitsuba imported on every worker) is printed separate
 outputs of every configuration are checked to hold the same waveforms.
 
 Usage: .venv/bin/python benchmarks/bench_batch.py [--poses cylindrical:72:3]
-       [--paths-per-pose 500] [--configs sequential,local-default,local-1xN] [--keep]
+       [--paths-per-pose 500] [--configs sequential,local-default,local-1xN,local-Nx1] [--keep]
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CONFIGS = ("sequential", "local-default", "local-1xN")
+CONFIGS = ("sequential", "local-default", "local-1xN", "local-Nx1")
 
 
 def manifest_text(poses: str, paths: int) -> str:
@@ -56,6 +57,8 @@ def engine_for(config: str, cores: int):
         return Engine(log=quiet)
     if config == "local-1xN":
         return Engine(workers=1, threads=cores, log=quiet)
+    if config == "local-Nx1":
+        return Engine(workers=cores, threads=1, log=quiet)
     raise SystemExit(f"unknown config {config!r}; choose from {CONFIGS}")
 
 
