@@ -109,7 +109,7 @@ class NetworkScene:
         """Fit the field to the volume ``x0`` [nx, ny, nz] (e.g. the scaled backprojection) at
         the voxel centres: half the batch uniform, half ∝ |x0|; Adam on mean|σ − x0|²/max|x0|²."""
         import drjit as dr
-        from .solver import Adam
+        from .adam import Adam
         m = self.m
         flat = x0.ravel()
         mag = np.abs(flat).astype(np.float64)

@@ -42,6 +42,7 @@ from typing import Callable
 
 import numpy as np
 
+from sonarsim.dataset.volume import voxel_spacing
 from sonarsim.errors import InputError
 
 from ._jit import jit
@@ -240,15 +241,15 @@ class EllipsoidSamples:
 class VoxelField:
     """Trilinear interpolation of complex voxels on a :class:`Grid` (zero outside the grid).
 
-    Along an axis with one voxel the interpolation tent uses the mean spacing of the
-    other axes (a 2-D grid is a slab one voxel thick).
+    Along an axis with one voxel the interpolation tent uses the smallest spacing of the
+    other axes (:func:`sonarsim.dataset.volume.voxel_spacing`, rule ``'min'``).
     """
 
     def __init__(self, grid: Grid):
         self.grid = grid
-        sp = grid.spacing
-        pseudo = float(np.mean(sp[sp > 0])) if np.any(sp > 0) else 0.01
-        self.h = np.where(sp > 0, sp, pseudo)
+        # sonarsim's single-voxel rule 'min': a 2-D grid is a slab one (smallest) voxel thick
+        self.h = voxel_spacing(grid.bounds, grid.shape, single="min") if max(grid.shape) > 1 \
+            else np.full(3, 0.01)
         self.lo = grid.bounds[:, 0]
         self.m = jit()
         # How AD's backward scatter-add accumulates into the voxels: 'Expand' (a private copy
