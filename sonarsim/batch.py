@@ -40,7 +40,6 @@ import csv
 import dataclasses
 import glob as globlib
 import hashlib
-import importlib
 import inspect as pyinspect
 import io
 import itertools
@@ -69,9 +68,9 @@ DEFAULT_PULSE = "lfm-20k"
 DEFAULT_FS = 100e3
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
 GLOB_CHARS = set("*?[")
-METHOD_MODULES = {"backproject": "recon.backprojection", "bp": "recon.backprojection",
-                  "gd": "recon.gradient_descent", "pfa": "recon.pfa",
-                  "nbp": "recon.neural_backprojection"}
+# The reconstruction step is plugged in by the recon package through this entry-point group
+# (recon/batch_step.py), so that sonarsim never imports recon: dependencies point one way.
+RECON_ENTRY_POINTS = "sonarsim.batch_steps"
 RECON_KEYS = ("method", "label", "shape", "voxel_size", "bounds", "evaluate")
 EVALUATE_KEYS = ("threshold", "crop", "samples", "images", "normalize", "seed")
 DEFAULT_VOXEL_SIZE = 0.0032      # metres, as `recon backproject`
@@ -457,21 +456,12 @@ def _format_name(template: str, params: dict, where: str) -> str:
 
 def recon_step(raw: dict, where: str, job_name: str, job_id: str, out: Path) -> ReconStep:
     """Validate one ``reconstruct`` table of a job."""
+    plugin = recon_plugin(where)
     if "method" not in raw or not isinstance(raw["method"], str):
-        raise InputError(f"{where}: reconstruct needs a method ({', '.join(METHOD_MODULES)} "
+        raise InputError(f"{where}: reconstruct needs a method ({', '.join(plugin.METHOD_MODULES)} "
                          "or module:python.module)")
     method = raw["method"]
-    module = method.split(":", 1)[1] if method.startswith("module:") else METHOD_MODULES.get(method)
-    if module is None:
-        raise InputError(f"{where}: unknown reconstruction method '{method}' (choose from "
-                         f"{', '.join(METHOD_MODULES)} or module:python.module)")
-    try:
-        solve = importlib.import_module(module).solve
-    except ModuleNotFoundError as exc:
-        raise InputError(f"{where}: reconstruction method '{method}' is not available "
-                         f"({exc})") from None
-    except AttributeError:
-        raise InputError(f"{where}: {module} has no solve()") from None
+    module, solve = plugin.solver(method, where)
     label = raw.get("label", method.split(".")[-1] if method.startswith("module:") else method)
     if not isinstance(label, str) or not NAME_RE.match(label):
         raise InputError(f"{where}: reconstruct label {label!r} must be letters, digits, . _ + -")
@@ -724,51 +714,20 @@ def run_reconstruction(job: Job, step: ReconStep, _needed: Any = None) -> dict:
     done = step_record(step)
     if done is not None:
         return {"ran": False, **done}
-    try:
-        import recon  # noqa: F401  (sonarsim does not depend on recon; a batch step may)
-    except ModuleNotFoundError as exc:
-        raise InputError(f"reconstruction needs the recon package ({exc})") from None
+    plugin = recon_plugin(f"job '{job.name}'")
     with _locked(step.output):
-        return _reconstruct(job, step)
+        return plugin.reconstruct(job, step)
 
 
-def _reconstruct(job: Job, step: ReconStep) -> dict:
-    from .atomic import atomic_path
-    from .dataset import SonarDataset
-    from recon.grid import Grid
-    dataset = SonarDataset.read(job.output)
-    if step.shape is not None:
-        grid = Grid.from_dataset(dataset, step.shape, step.bounds)
-    else:
-        probe = Grid.from_dataset(dataset, (2, 2, 2), step.bounds)
-        shape = tuple(int(round((hi - lo) / step.voxel_size)) + 1 for lo, hi in probe.bounds)
-        grid = Grid(probe.bounds, shape)
-    volume = importlib.import_module(step.module).solve(dataset, grid, progress=False,
-                                                        **step.options)
-    del dataset
-    volume.params.update(dataset=job.output, batch_step_id=step.step_id,
-                         batch_step=json.dumps(step.params, sort_keys=True))
-    if step.evaluate is None:
-        volume.write(step.output)
-        return {"ran": True}
-    from recon.commands.evaluate import evaluate_file, json_safe
-    from recon.metrics import load_gt_mesh
-    options = dict(step.evaluate)
-    options["sweep"] = True
-    crop = options.pop("crop", None)
-    tmp_volume = Path(step.output).with_name(f".{Path(step.output).name}.eval.h5")
-    volume.write(tmp_volume)         # evaluated before it becomes the step's output
-    try:
-        result = evaluate_file(tmp_volume, load_gt_mesh(job.output), crop=crop, **options)
-        result.pop("sweep", None)
-        result["volume"] = step.output
-        with atomic_path(step.eval_output) as tmp:
-            tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
-                                       "metrics": json_safe(result)}, indent=1))
-        tmp_volume.replace(step.output)
-    finally:
-        tmp_volume.unlink(missing_ok=True)
-    return {"ran": True, **summary_metrics(json_safe(result))}
+def recon_plugin(where: str):
+    """The module that runs reconstruction steps, found through the ``sonarsim.batch_steps``
+    entry point (``recon.batch_step`` when recon is installed)."""
+    from importlib.metadata import entry_points
+    found = list(entry_points(group=RECON_ENTRY_POINTS, name="reconstruct"))
+    if not found:
+        raise InputError(f"{where}: reconstruction steps need the recon package "
+                         f"(no '{RECON_ENTRY_POINTS}' entry point is installed)")
+    return found[0].load()
 
 
 # ----------------------------------------------------------------------------- running
