@@ -181,7 +181,7 @@ class SimulationSettings:
     pulse: Pulse
     snr_db: float | None = None
     paths_per_pose: int | None = None
-    bounces: int = 3
+    bounces: int = 1                               # single scattering, as the reference
     bounce_set: tuple[int, ...] | None = None     # 1-based; None = all rendered
     oversample: int = 20
     sound_speed: float = DEFAULT_SOUND_SPEED
