@@ -335,8 +335,9 @@ def scene_digest(spec) -> str:
     parts = [spec.name, spec.source, spec.box.lo, spec.box.hi,
              None if spec.ground is None else [spec.ground.albedo, list(spec.ground.size)]]
     for obj in spec.objects:
-        parts += [obj.label, obj.albedo, obj.smooth, np.asarray(obj.mesh.vertices, float),
-                  np.asarray(obj.mesh.faces, np.int64)]
+        parts += [obj.label, obj.albedo, obj.normals, np.asarray(obj.mesh.vertices, float),
+                  np.asarray(obj.mesh.faces, np.int64),
+                  None if obj.file_normals is None else np.asarray(obj.file_normals, float)]
     return _digest(*parts)
 
 
