@@ -62,7 +62,9 @@ def test_data_residual_below_optimally_scaled_backprojection(gd_run, point_ds, g
     α = ⟨A x_bp, s⟩/‖A x_bp‖² — the best BP can do through the same A."""
     vol, _ = gd_run
     settings = gd.GDSettings(**FAST)
-    tgt = gd.targets(point_ds, settings)
+    # The data straight from the measurements module, not through the solver's own target
+    # function, so that a solver fitting altered data (a scaled or dropped part) fails here.
+    tgt = measurements.matched_filtered(point_ds)
     speeds = measurements.sound_speeds(point_ds)
     first, last = gd.reachable_bins(point_ds, grid, speeds)
     pings = np.arange(0, point_ds.n_pings, 2)
@@ -73,11 +75,12 @@ def test_data_residual_below_optimally_scaled_backprojection(gd_run, point_ds, g
     s = tgt[pings[:, None], bins]
 
     def residual(x):
-        return np.linalg.norm(op.forward(x) - s) / np.linalg.norm(s)
+        """Relative residual after the least-squares optimal complex scale (units are free)."""
+        a = op.forward(x)
+        alpha = np.vdot(a, s) / np.vdot(a, a)
+        return np.linalg.norm(alpha * a - s) / np.linalg.norm(s)
 
-    a_bp = op.forward(bp.backproject(point_ds, grid, progress=False))
-    alpha = np.vdot(a_bp, s) / np.vdot(a_bp, a_bp)
-    r_bp = np.linalg.norm(alpha * a_bp - s) / np.linalg.norm(s)
+    r_bp = residual(bp.backproject(point_ds, grid, progress=False))
     r_gd = residual(vol.volume)
     # Measured: r_bp 0.758, r_gd 0.668.
     assert 0.74 < r_bp < 0.78
