@@ -125,8 +125,9 @@ def numpy_pose(mi, scene, tx, rx, b_tx, b_rx, window, paths, bounces, rng, half_
 def mc_snr_db(halves: np.ndarray, crop, bounce_index=None) -> float:
     """MC SNR after matched filtering of half-estimates [2, n, B, T] (see the module doc)."""
     from sonarsim.fidelity import mf_energy
-    from sonarsim.simulate import make_pulse, oversampled_pulse, transients_to_waveforms
-    pulse = make_pulse("lfm-20k", 100e3).samples
+    from sonarsim.signals import pulse_from_spec
+    from sonarsim.simulate import oversampled_pulse, transients_to_waveforms
+    pulse = pulse_from_spec("lfm-20k", 100e3).samples
     pulse_os = oversampled_pulse(pulse, 20)
     wf = transients_to_waveforms(halves.mean(axis=0), pulse_os, 20, crop.num_samples,
                                  bounce_index)

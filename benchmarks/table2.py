@@ -269,7 +269,7 @@ def evaluate_both(volume_path: Path, gt, settings: Settings) -> dict:
     exact: crop z >= 5 mm (the ground plane is not in the GT meshes), sweep of τ;
     reference: as the reference evaluates, the whole box (ground included), IoU sweep.
     """
-    from recon.commands.evaluate import evaluate_file
+    from recon.evaluation import evaluate_file
     out = {}
     for protocol in PROTOCOLS:
         crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3] if protocol == "exact" else None
@@ -323,7 +323,7 @@ def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: S
               "mc_snr_db": ds.meta.get("mc_snr_db"), "n_pings": int(ds.n_pings),
               "notes": notes, **evaluate_both(volume_path, gt, settings)}
     result["evaluate_s"] = time.perf_counter() - t0
-    from recon.commands.evaluate import json_safe
+    from recon.evaluation import json_safe
     record.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(record) as tmp:
         Path(tmp).write_text(json.dumps(json_safe(result), indent=1, allow_nan=False,
@@ -601,7 +601,7 @@ def main(argv: list[str] | None = None) -> int:
     write_figure(out / "table2.png", results, methods)
     total = time.perf_counter() - t_start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    from recon.commands.evaluate import json_safe
+    from recon.evaluation import json_safe
     (out / "table2.json").write_text(json.dumps(json_safe(
         {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
          "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,

@@ -15,7 +15,7 @@ from sonarsim.batch import summary_metrics
 from sonarsim.dataset import SonarDataset
 from sonarsim.errors import InputError
 
-from .commands.evaluate import evaluate_file, json_safe
+from .evaluation import evaluate_file, json_safe
 from .grid import Grid
 from .metrics import load_gt_mesh
 

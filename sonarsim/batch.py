@@ -91,7 +91,7 @@ class ReconStep:
     """A reconstruction of a job's dataset, optionally evaluated against its GT mesh.
 
     ``options`` go to ``<module>.solve(dataset, grid, progress=False, **options)``;
-    ``evaluate``: keyword arguments of ``recon.commands.evaluate.evaluate_file`` or None.
+    ``evaluate``: keyword arguments of ``recon.evaluation.evaluate_file`` or None.
     Outputs: ``output`` (volume .h5) and ``eval_output`` (metrics .json).
     """
     label: str

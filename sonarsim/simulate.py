@@ -71,8 +71,7 @@ from .geometry import CropWindow, Poses, crop_window
 from .render import (DEFAULT_BEAMS, DEFAULT_MEMORY_BUDGET, DEFAULT_SOUND_SPEED, PathWindow,
                      aligned_window, choose_chunk_size)
 from .scene import SceneSpec
-from .signals import PULSE_HELP, REFERENCE_PULSE_SAMPLES, Pulse, analytic, fft_upsample
-from .signals import pulse_from_spec as make_pulse   # the name benchmarks/table2.py uses
+from .signals import REFERENCE_PULSE_SAMPLES, Pulse, analytic, fft_upsample
 from .fidelity import PingStats, mc_snr_from_energies, noise_budget, snr_db
 from .halves import (Estimator, HalfRenderer, Sampling, default_surface_spacing, half_seed,
                      make_integrator)

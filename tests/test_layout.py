@@ -113,3 +113,9 @@ def test_wheel_ships_plugins_and_scenes_and_works_installed(tmp_path):
     where, scene, cls = r.stdout.split()
     assert where.startswith(str(site)) and scene.startswith(str(site))
     assert cls == "SonarTransientIntegrator"
+@pytest.mark.parametrize("pkg", ["sonarsim.commands", "recon.commands"])
+def test_commands_do_not_borrow_from_each_other(pkg):
+    """A command module may use shared helpers (``_``-prefixed modules), not another command."""
+    commands = {m for m in MODULES if m.startswith(pkg + ".") and not m.rsplit(".", 1)[1].startswith("_")}
+    borrowed = {m: sorted(project_imports(m) & (commands - {m})) for m in commands}
+    assert {m: v for m, v in borrowed.items() if v} == {}

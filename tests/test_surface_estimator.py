@@ -198,8 +198,9 @@ def test_pressure_matches_numpy_eq1(mi, tmp_path):
 def _compressed(hist_complex, oversample=20):
     """hist ⊗ analytic LFM pulse at the oversampled rate (complex histogram [T])."""
     from sonarsim.signals import analytic
-    from sonarsim.simulate import make_pulse, oversampled_pulse
-    pulse = oversampled_pulse(make_pulse("lfm-20k", 100e3).samples, oversample)
+    from sonarsim.signals import pulse_from_spec
+    from sonarsim.simulate import oversampled_pulse
+    pulse = oversampled_pulse(pulse_from_spec("lfm-20k", 100e3).samples, oversample)
     n = len(hist_complex) + len(pulse) - 1
     spec = np.fft.fft(hist_complex, n) * np.fft.fft(analytic(pulse), n)
     return np.fft.ifft(spec)[: len(hist_complex)]

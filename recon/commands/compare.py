@@ -10,7 +10,7 @@ from sonarsim.atomic import atomic_path
 from sonarsim.errors import InputError
 
 from .. import export, metrics
-from .evaluate import _fmt, evaluate_file
+from ..evaluation import evaluate_file, fmt_value
 
 HELP = "Compare volumes side by side: MIPs, renders and metrics against a ground-truth mesh."
 
@@ -80,13 +80,13 @@ def run(args: argparse.Namespace) -> int:
         axs[r, 2].set_title(f"{method}: mesh @ {threshold:g}")
         axs[r, 2].axis("off")
         text = "\n".join([
-            f"IoU          {_fmt(res['iou'])}",
-            f"Chamfer² m²  {_fmt(res['chamfer_sq'])}",
-            f"Chamfer m    {_fmt(res['chamfer_m'])}",
-            f"normal cons. {_fmt(res['normal_consistency'])}",
-            f"PSNR depth   {_fmt(res['psnr_depth'])} dB",
-            f"SSIM depth   {_fmt(res['ssim_depth'])}",
-            f"PSNR shaded  {_fmt(res['psnr_shaded'])} dB"])
+            f"IoU          {fmt_value(res['iou'])}",
+            f"Chamfer² m²  {fmt_value(res['chamfer_sq'])}",
+            f"Chamfer m    {fmt_value(res['chamfer_m'])}",
+            f"normal cons. {fmt_value(res['normal_consistency'])}",
+            f"PSNR depth   {fmt_value(res['psnr_depth'])} dB",
+            f"SSIM depth   {fmt_value(res['ssim_depth'])}",
+            f"PSNR shaded  {fmt_value(res['psnr_shaded'])} dB"])
         axs[r, 3].text(0, 0.5, text, va="center", family="monospace")
         axs[r, 3].axis("off")
     fig.tight_layout()
@@ -97,6 +97,6 @@ def run(args: argparse.Namespace) -> int:
         plt.close(fig)
     print(f"figure: {args.out}")
     for path, _, _, _, res, _ in rows:
-        print(f"  {path}: IoU {_fmt(res['iou'])}, Chamfer² {_fmt(res['chamfer_sq'])} m², "
-              f"Chamfer {_fmt(res['chamfer_m'])} m")
+        print(f"  {path}: IoU {fmt_value(res['iou'])}, Chamfer² {fmt_value(res['chamfer_sq'])} m², "
+              f"Chamfer {fmt_value(res['chamfer_m'])} m")
     return 0
