@@ -3,7 +3,7 @@ forward + adjoint against a vectorised NumPy implementation of the same job.
 
 Usage: .venv/bin/python benchmarks/bench_gd.py [--iterations N] [--shape NX NY NZ]
 
-Reference-sized iteration (REFERENCE_SPEC §4.2, §4.5): 5 pings × 200 range bins × ~4 800
+Reference-sized iteration (reference code inr_reconstruction/): 5 pings × 200 range bins × ~4 800
 rays (num_rays 5000 in the reference → 4 777 rays), on the AirSAS grid 150×150×120, with
 Lambertian normals, occlusion and all priors on. The dataset is a synthetic set of point
 scatterers on a 2-height AirSAS-like scan. The machine is shared: numbers are noisy.

@@ -1,4 +1,5 @@
-"""Differentiable ellipsoidal forward model on Dr.Jit (REFERENCE_SPEC §4.2–§4.3, supplement Eq. 10–12).
+"""Differentiable ellipsoidal forward model on Dr.Jit (reference code
+``inr_reconstruction/sampling.py``, ``forward_model.py``; Reed et al. 2023 supplemental Eq. 10–12).
 
 For a ping with transmitter tx and receiver rx and a round-trip path length r, the points
 that return an echo at r lie on the ellipsoid {x : |x − tx| + |x − rx| = r} (foci tx, rx).
@@ -18,7 +19,7 @@ callables central finite differences) and T_j a transmittance. Like the referenc
 solid-angle weights or 1/r² spreading, the beam only limits the cone, phase comes from
 complex σ (so voxels must be finer than about a quarter wavelength of round-trip path).
 
-Deliberate differences from the reference (documented quirks, REFERENCE_SPEC §10.6):
+Deliberate differences from the reference (documented quirks, docs/reconstruction.md):
 - ray directions are unit vectors, spread uniformly in solid angle over the cone (a
   Fibonacci spiral on the spherical cap) instead of a square grid on a plane with
   unnormalised directions;

@@ -1,7 +1,7 @@
 """Per-ping quantities shared by the reconstructors: complex measurements and sound speeds.
 
-The complex measurement of a ping is the matched-filtered analytic signal (REFERENCE_SPEC
-§1.6 step 4 / §3.5), computed with :func:`sonarsim.signals.matched_filter` — the one
+The complex measurement of a ping is the matched-filtered analytic signal (reference code
+``sas_utils.match_filter_all``), computed with :func:`sonarsim.signals.matched_filter` — the one
 implementation in the project. Sample k of a dataset waveform is at time
 ``(start_sample + k) / fs`` after transmission, i.e. at round-trip path ``c·t``.
 

@@ -31,13 +31,13 @@ from .geometry import CropWindow, Poses, SceneBox, crop_window
 from .progress import progress_bar
 
 DEFAULT_BEAMS = {"tx_beam": "cone", "tx_beamwidth": 30.0, "rx_beam": "cone", "rx_beamwidth": 30.0}
-# The reference renderer (REFERENCE_SPEC §6.1): isotropic point light; a 25° perspective
+# The reference renderer (its airsas/create_render_commands.py): isotropic point light; a 25° perspective
 # camera aimed at a fixed point, approximated here by a 25° cone (docs/simulation.md).
 REFERENCE_PARITY_BEAMS = {"tx_beam": "isotropic", "rx_beam": "cone", "rx_beamwidth": 25.0}
 REFERENCE_RX_TARGET = (0.0, 0.0, 0.09)   # m, the reference camera's look-at point
 REFERENCE_BOUNCES = (1,)                 # its max_bounce 2 = columns 0 (empty) and 1
 BEAM_KEYS = tuple(DEFAULT_BEAMS) + ("shading_normals",)
-DEFAULT_SOUND_SPEED = 344.973      # m/s, the reference's simulated system file (REFERENCE_SPEC §1.3)
+DEFAULT_SOUND_SPEED = 344.973      # m/s, the reference's simulated system file (derived from the reference renderer's tMin/tMax/nBin)
 DEFAULT_MEMORY_BUDGET = 768 * 2**20  # bytes for one chunk's histogram buffers
 _LANE_LIMIT = 2**32 - 1
 AMPLITUDES = ("intensity", "pressure", "coherent")       # the integrator's 'amplitude'

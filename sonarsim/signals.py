@@ -3,8 +3,9 @@
 NumPy/SciPy only. Sample rates ``fs`` are in Hz, times in s, temperatures in °C. For
 arrays of signals the time axis is ``axis`` (default the last one).
 
-References: REFERENCE_SPEC §1.3 (air sound speed), §1.4 (LFM pulses), §1.6 steps 3–4
-(group delay, matched filter), §6.2 step 4 (noise), §8.1 (water sound speed).
+Sources (docs/references.md): the reference code's air sound speed, LFM pulses
+(``sas_utils.gen_real_lfm``), group-delay removal and matched filter (``airsas/reconstruct_airsas_scene.py``), the
+simulation's noise (``airsas/reconstruct_from_numpy.py``) and the water sound speed (``svss/``).
 """
 from __future__ import annotations
 
@@ -19,11 +20,11 @@ import scipy.signal
 
 from .errors import FormatError, InputError
 
-AIRSAS_FS = 100e3                          # Hz (REFERENCE_SPEC §1.1)
-AIRSAS_GROUP_DELAY_SAMPLES = 62.329317     # samples at AIRSAS_FS (REFERENCE_SPEC §1.1)
+AIRSAS_FS = 100e3                          # Hz (AirSAS SysParams.csv)
+AIRSAS_GROUP_DELAY_SAMPLES = 62.329317     # samples at AIRSAS_FS (AirSAS SysParams.csv)
 REFERENCE_PULSE_SAMPLES = 100              # the reference keeps the first 100 pulse samples
 
-# name -> (f_start, f_stop, duration, tukey ratio); REFERENCE_SPEC §1.4.
+# name -> (f_start, f_stop, duration, tukey ratio); reference code sas_utils.gen_real_lfm.
 NAMED_PULSES: dict[str, tuple[float, float, float, float]] = {
     "lfm-20k": (30e3, 10e3, 1e-3, 0.1),
     "lfm-10k": (25e3, 15e3, 1e-3, 0.1),
@@ -79,7 +80,7 @@ def lfm(f_start: float, f_stop: float, duration: float, fs: float,
     """Linear FM chirp [L] (float64, peak amplitude 1) with a Tukey window.
 
     L = round(duration·fs); sample k is at t = k/fs; the instantaneous frequency sweeps
-    linearly from ``f_start`` at t = 0 to ``f_stop`` at t = duration (REFERENCE_SPEC §1.4:
+    linearly from ``f_start`` at t = 0 to ``f_stop`` at t = duration (reference code ``sas_utils.gen_real_lfm``:
     cosine phase, window ``tukey(L, window_ratio)``).
     """
     fs = _check_fs(fs)
@@ -110,7 +111,7 @@ def named_pulse(name: str, fs: float = AIRSAS_FS) -> np.ndarray:
 def load_pulse(path: str | os.PathLike, max_samples: int | None = None) -> np.ndarray:
     """A measured pulse [L] (float64) from a 1-D .npy file, optionally its first ``max_samples``.
 
-    The reference uses the first 100 samples of the measured AirSAS pulses (REFERENCE_SPEC §1.4).
+    The reference uses the first 100 samples of the measured AirSAS pulses (reference code ``airsas/utils.py::process_folder``).
     """
     p = Path(path)
     if not p.is_file():
@@ -281,7 +282,7 @@ def fractional_delay(x, delay_samples, axis: int = -1) -> np.ndarray:
     y = IFFT(FFT(x)·exp(−j·2π·f·delay)) with f = fftfreq(T) in cycles/sample, i.e. a
     *circular* shift: what leaves the end re-enters at the start. Positive delays move
     the signal later; the AirSAS group-delay correction is ``delay = −62.329317``
-    (REFERENCE_SPEC §1.6 step 3). ``delay_samples`` is a scalar or an array broadcastable
+    (the reference code's group-delay removal). ``delay_samples`` is a scalar or an array broadcastable
     to x's shape without the time axis (one delay per signal). Real input gives real
     output of the same precision; the Nyquist bin of an even-length real signal cannot
     carry a fractional delay and is scaled by cos(π·delay), so keep that bin empty
@@ -335,7 +336,7 @@ def _temperature(temp_c) -> np.ndarray:
 
 
 def sound_speed_air(temp_c):
-    """Speed of sound in air (m/s) at ``temp_c`` (°C): 331.4 + 0.6·T (REFERENCE_SPEC §1.3)."""
+    """Speed of sound in air (m/s) at ``temp_c`` (°C): 331.4 + 0.6·T (reference code ``airsas/reconstruct_airsas_scene.py``)."""
     t = _temperature(temp_c)
     if np.any(t < -100) or np.any(t > 200):
         raise InputError(f"temperature {temp_c!r} °C is outside the plausible range for air")
@@ -346,7 +347,7 @@ def sound_speed_air(temp_c):
 def sound_speed_water(temp_c):
     """Speed of sound in fresh water (m/s) at ``temp_c`` (°C): 1404.3 + 4.7·T − 0.04·T².
 
-    The SVSS formula (REFERENCE_SPEC §8.1); meant for lake temperatures (0–35 °C).
+    The SVSS formula (reference code ``svss/``); meant for lake temperatures (0–35 °C).
     """
     t = _temperature(temp_c)
     if np.any(t < -5) or np.any(t > 60):
@@ -362,7 +363,7 @@ def signal_power(s) -> float:
 
     Silence (e.g. the part of a waveform before the first echo) does not count, and the
     threshold is relative, so the result scales with the units of s (power·a² for s·a).
-    The reference (REFERENCE_SPEC §6.2 step 4) uses the absolute test s > 1e-6: it drops
+    The reference (reference code ``airsas/reconstruct_from_numpy.py``) uses the absolute test s > 1e-6: it drops
     negative samples (harmless for zero-mean echoes) and depends on the units — data
     scaled below 1e-6, as raw transient energies can be, would have no signal at all.
     """

@@ -1,7 +1,7 @@
 """sonarsim.importers.airsas on the real AirSAS scan in ../shared/data (skipped without it).
 
 Expected values are computed here independently with plain NumPy/csv from the raw files
-(REFERENCE_SPEC §1.1 pose model, §1.3 sound speed, §1.4 LFM, §1.6 steps 2–3).
+(the reference code's pose model, sound speed, LFM, background and group delay).
 """
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def _sys_param(folder: Path, key: str) -> float:
 
 
 def _advance(x: np.ndarray, delay: float) -> np.ndarray:
-    """x advanced by ``delay`` samples: IFFT(FFT(x)·e^{+j2πf·delay}) (REFERENCE_SPEC §1.6)."""
+    """x advanced by ``delay`` samples: IFFT(FFT(x)·e^{+j2πf·delay}) (the reference code's group-delay removal)."""
     n = x.size
     f = np.fft.fftfreq(n)
     f[n // 2] = -0.5      # fold the Nyquist bin to -fs/2 as the reference does

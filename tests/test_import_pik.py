@@ -1,7 +1,7 @@
 """sonarsim.importers.pik: safe loading and field mapping of reference system_data.pik files.
 
 The pickles are built here with stand-in classes in a fake module ``data_schemas`` (the
-reference's module name), shaped as REFERENCE_SPEC §2.1 describes (values in ``_data``).
+reference's module name), shaped as the reference code's data_schemas.py (values in ``_data``).
 """
 from __future__ import annotations
 

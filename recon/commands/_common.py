@@ -19,7 +19,7 @@ from sonarsim.errors import InputError
 
 from ..grid import Grid, scene_box_of
 
-DEFAULT_VOXEL_SIZE = 0.0032   # metres; the reference's simulated-scene pitch (REFERENCE_SPEC §1.5)
+DEFAULT_VOXEL_SIZE = 0.0032   # metres; the reference's simulated-scene pitch (reference code geometry.py)
 
 
 def add_dataset_and_grid(parser: argparse.ArgumentParser) -> None:

@@ -21,8 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "generated at fs; 'commanded' = the column of Waveforms.csv; a "
                              "named LFM (lfm-20k, lfm-10k, lfm-5k); or a measured pulse .npy "
                              "at fs. To match the reference, which matched-filters real data "
-                             "with the measured pulse (REFERENCE_SPEC 1.4), pass "
-                             "../shared/data/pulses/airsas_5khz_measured.npy for 5 kHz scans "
+                             "with the measured pulse (as the reference does), pass "
+                             "the measured pulse .npy (the reference code's data/wfm/5khz_bw_lfm.npy) for 5 kHz scans "
                              "(airsas_20khz_measured.npy for 20 kHz)")
     parser.add_argument("--pulse-samples", type=int, default=None, metavar="N",
                         help="keep the first N samples of a .npy pulse (default 100 = 1 ms, "

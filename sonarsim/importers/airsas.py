@@ -1,4 +1,5 @@
-"""Import a real AirSAS scan from the rig's LabVIEW CSV folder (REFERENCE_SPEC §1.1–1.6, §2.2).
+"""Import a real AirSAS scan from the rig's LabVIEW CSV folder (the reference code's
+``airsas/reconstruct_airsas_scene.py``; docs/importers.md).
 
 A scan folder holds
 

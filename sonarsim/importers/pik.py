@@ -1,4 +1,4 @@
-"""Import the reference's ``system_data.pik`` pickles (REFERENCE_SPEC §2.1) without running code.
+"""Import the reference's ``system_data.pik`` pickles (reference code ``data_schemas.py``) without running code.
 
 A pickle can call any importable function while it loads. :class:`SafeUnpickler` therefore
 resolves only
@@ -359,7 +359,7 @@ def _sub(record: SchemaRecord, key: str) -> SchemaRecord | None:
 def import_pik(path: str | Path, *, box: "geometry.SceneBox | None" = None):
     """Read a reference ``system_data.pik`` into a :class:`sonarsim.dataset.SonarDataset`.
 
-    Mapping (REFERENCE_SPEC §2.1): ``wfm_data`` → waveforms [N, T] (float32); ``tx_coords``,
+    Mapping (reference code ``data_schemas.py``): ``wfm_data`` → waveforms [N, T] (float32); ``tx_coords``,
     ``rx_coords`` → tx, rx [N, 3] m; ``tx_vectors``/``rx_vectors`` → boresights when present,
     else the beams point at the centre of the scene box: ``box`` if given, else the box of
     ``geometry.corners``, else ``AIRSAS_REAL_BOX`` (the box is recorded in ``meta``);
