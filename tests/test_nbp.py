@@ -100,16 +100,21 @@ def test_checkpoint_resume_equals_uninterrupted_run(point_ds, tmp_path):
                   resume=True, **kw)
 
 
-def test_deterministic_runs_do_not_depend_on_thread_count(point_ds):
+@pytest.mark.parametrize("solver", ["nbp", "gd"])
+def test_default_runs_do_not_depend_on_thread_count(point_ds, solver):
+    """A seed fixes the run by default (no option needed), for the network and the voxels."""
     import drjit as dr
+    from recon import gradient_descent
+    solve = nbp.solve if solver == "nbp" else gradient_descent.solve
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
-    kw = dict(TINY, deterministic=True, iterations=3, seed=5, progress=False)
+    kw = dict(iterations=3, seed=5, progress=False)
+    kw.update(TINY if solver == "nbp" else dict(n_rays=300, bins_per_ping=8))
     threads = dr.thread_count()
     try:
         dr.set_thread_count(2)
-        a = nbp.solve(point_ds, g, **kw).volume
+        a = solve(point_ds, g, **kw).volume
         dr.set_thread_count(1)
-        b = nbp.solve(point_ds, g, **kw).volume
+        b = solve(point_ds, g, **kw).volume
     finally:
         dr.set_thread_count(threads)
     assert dr.thread_count() == threads and np.array_equal(a, b)
