@@ -20,12 +20,12 @@ Options every subcommand gets here:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import pkgutil
 import sys
 
 from . import limits, outputs, runtime
+from .threads import dr_threads
 from .errors import InputError, SonarsimError
 
 
@@ -112,24 +112,15 @@ def _check_seed(args: argparse.Namespace) -> None:
         raise InputError(f"--seed must be in [0, 2^32), got {seed}")
 
 
-@contextlib.contextmanager
 def _thread_count(threads):
-    """Dr.Jit runs on ``threads`` worker threads inside (None: unchanged)."""
-    if threads is None:
-        yield
-        return
-    if isinstance(threads, bool) or int(threads) != threads or threads < 1:
-        raise InputError(f"--threads must be >= 1, got {threads}")
-    if threads > MAX_THREADS:
-        raise InputError(f"--threads must be at most {MAX_THREADS}, got {threads}")
-    runtime.mitsuba()       # a working libLLVM before drjit is imported
-    import drjit as dr
-    before = dr.thread_count()
-    dr.set_thread_count(int(threads))
-    try:
-        yield
-    finally:
-        dr.set_thread_count(before)
+    """Dr.Jit runs on ``threads`` worker threads inside (None: unchanged); checked first."""
+    if threads is not None:
+        if isinstance(threads, bool) or int(threads) != threads or threads < 1:
+            raise InputError(f"--threads must be >= 1, got {threads}")
+        if threads > MAX_THREADS:
+            raise InputError(f"--threads must be at most {MAX_THREADS}, got {threads}")
+        runtime.mitsuba()       # a working libLLVM before drjit is imported
+    return dr_threads(threads)
 
 
 def run_main(prog: str, package: str, description: str, argv=None) -> int:
