@@ -217,7 +217,7 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
         bar.close()
 
 
-def render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
+def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
            fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
            path_range=None, seed: int = 0, chunk_size: int | None = None,
            beams: Mapping | None = None, box: SceneBox | None = None,

@@ -266,7 +266,7 @@ def test_render_and_simulate_share_the_aligned_window(tmp_path):
     """The default render window is simulate's: a render file decimated at bins 0, K, 2K, ...
     gives values at the dataset's sample times; the stored transients (the mean of the two
     half-estimates) are exactly what the waveforms were made from."""
-    from sonarsim.render import render
+    from sonarsim.render import render_poses as render
     spec = load_scene("sphere")
     poses = trajectory("cylindrical:3:1", box=spec.box)
     ds = SonarDataset.read(sim.simulate(spec, poses, tmp_path / "d.h5",

@@ -497,7 +497,7 @@ def _poses(n):
 
 
 def test_seeded_and_independent_of_chunking(mi, box_on_ground):
-    from sonarsim.render import render as render_poses
+    from sonarsim.render import render_poses
     scene, _, _ = box_on_ground
     poses = _poses(5)
     kw = dict(paths_per_pose=20_000, bounces=2, seed=7, progress=False)
@@ -515,7 +515,7 @@ def test_seeded_and_independent_of_chunking(mi, box_on_ground):
 
 def test_thread_count_and_pose_range_do_not_change_the_bytes(mi, box_on_ground):
     """float64 sums rounded once: 1 or 2 Dr.Jit threads, any sub-range, the same bytes."""
-    from sonarsim.render import iter_render, render as render_poses
+    from sonarsim.render import iter_render, render_poses
     from sonarsim.simulate import dr_threads
     scene, _, _ = box_on_ground
     poses = _poses(5)
@@ -587,7 +587,7 @@ def test_window_drops_outside_contributions(mi, sphere_scene):
 def test_driver_returns_transients(mi, box_on_ground):
     from sonarsim.dataset import Transients
     from sonarsim.geometry import SIM_BOX, crop_window
-    from sonarsim.render import iter_render, render as render_poses
+    from sonarsim.render import iter_render, render_poses
     scene, _, _ = box_on_ground
     poses = _poses(3)
     t = render_poses(scene, poses, paths_per_pose=2000, bounces=2, box=SIM_BOX, progress=False)
@@ -618,7 +618,7 @@ def test_driver_returns_transients(mi, box_on_ground):
     {"chunk_size": 0}, {"oversample": 0},
 ])
 def test_driver_rejects_bad_input(mi, box_on_ground, kwargs):
-    from sonarsim.render import render as render_poses
+    from sonarsim.render import render_poses
     scene, _, _ = box_on_ground
     with pytest.raises(InputError):
         render_poses(scene, _poses(2), **{"paths_per_pose": 10, "progress": False, **kwargs})
@@ -627,7 +627,7 @@ def test_driver_rejects_bad_input(mi, box_on_ground, kwargs):
 def test_driver_default_window_is_the_scene_box(mi):
     """Without box or path_range the window covers the scene's bounding box (here a flat plane)."""
     from sonarsim.geometry import Poses, SceneBox, crop_window
-    from sonarsim.render import render as render_poses
+    from sonarsim.render import render_poses
     scene = mi.load_dict({"type": "scene", "plane": {
         "type": "rectangle", "to_world": mi.ScalarTransform4f().scale([0.3, 0.3, 1.0]),
         "bsdf": diffuse(1.0)}})

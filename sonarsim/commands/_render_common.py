@@ -76,7 +76,7 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_help: str,
 
 
 def beams_from_args(args: argparse.Namespace) -> dict:
-    """The ``beams`` mapping of :func:`sonarsim.render.render` from the beam options."""
+    """The ``beams`` mapping of :func:`sonarsim.render.render_poses` from the beam options."""
     if args.reference_parity:
         from ..render import REFERENCE_PARITY_BEAMS
         for option in ("isotropic", "tx_beam", "tx_beamwidth", "rx_beam", "rx_beamwidth"):

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import InputError
 from ._render_common import (add_render_arguments, add_scene_and_pose_arguments, beams_from_args,
                              check_common, parity_meta, parity_poses)
 
@@ -43,25 +42,18 @@ def _check_memory(scene, poses, args, box) -> None:
 
 
 def _estimator_kwargs(args: argparse.Namespace) -> dict:
-    """Keyword arguments of :func:`sonarsim.render.render` for the estimator and amplitude
+    """Keyword arguments of :func:`sonarsim.render.render_poses` for the estimator and amplitude
     options (only those that differ from the defaults)."""
-    import inspect
-    from ..render import render
     wanted = {"bounce1": args.bounce1_estimator, "surface_spacing": args.surface_spacing,
               "amplitude": None if args.amplitude == "intensity" else args.amplitude,
               "speckle_seed": args.speckle_seed if args.amplitude == "coherent" else None}
     wanted = {k: v for k, v in wanted.items() if v is not None}
-    known = inspect.signature(render).parameters
-    missing = [k for k in wanted if k not in known]
-    if missing:
-        raise InputError(f"this version of sonarsim render does not support "
-                         f"{', '.join('--' + k.replace('_', '-') for k in missing)}")
     return wanted
 
 
 def run(args: argparse.Namespace) -> int:
     from ..geometry import trajectory
-    from ..render import render
+    from ..render import render_poses
     from ..scene import load_scene
     from ..threads import dr_threads
 
@@ -77,11 +69,12 @@ def run(args: argparse.Namespace) -> int:
     _check_memory(scene, poses, args, spec.box)
     estimator = _estimator_kwargs(args)
     with dr_threads(args.threads):
-        transients = render(scene, poses, paths_per_pose=args.paths_per_pose, **estimator,
-                            bounces=args.bounces, fs=args.fs, oversample=args.oversample,
-                            sound_speed=args.sound_speed, path_range=args.path_range,
-                            seed=args.seed, chunk_size=args.chunk_size, beams=beams,
-                            box=spec.box, progress=not args.no_progress)
+        transients = render_poses(scene, poses, paths_per_pose=args.paths_per_pose,
+                                  **estimator, bounces=args.bounces, fs=args.fs,
+                                  oversample=args.oversample, sound_speed=args.sound_speed,
+                                  path_range=args.path_range, seed=args.seed,
+                                  chunk_size=args.chunk_size, beams=beams, box=spec.box,
+                                  progress=not args.no_progress)
     transients.meta.update(scene=spec.name, scene_source=spec.source, poses=str(args.poses),
                            **parity_meta(args))
     transients.write(args.out)
