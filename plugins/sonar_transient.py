@@ -542,20 +542,9 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                 throughput = throughput * seg / cos_in
                 if self.amplitude == "coherent":
                     phase = phase + self._voxel_phase(si.p, bounce, ctx)
-            to_rx = p_rx - si.p
-            dist2 = dr.squared_norm(to_rx)
-            dist = dr.sqrt(dist2)
-            w_rx = to_rx / dist
-            cos_out = dr.maximum(dr.dot(n_sh_v, w_rx), 0.0)
-            c_rx = -dr.dot(w_rx, b_rx)
-            if intensity:
-                value = (throughput * albedo * dr.inv_pi * cos_out
-                         * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
-            else:
-                value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
-                         * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
-            connect = active & (dr.dot(n_geo_v, w_rx) > 0.0) & (value != 0.0)
-            connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
+            value, dist, w_rx, connect = self._connect_rx(
+                scene, si, p_rx, b_rx, n_sh_v, n_geo_v, throughput, albedo, cos_in, active,
+                intensity, ctx)
             values = [value * (1.0 / len(quantiles))]
             if self.complex_output:
                 values = [values[0] * dr.cos(phase), values[0] * dr.sin(phase)]
@@ -658,6 +647,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             n_geo = si.n * flip
             n_shade = (si.sh_frame.n if self.shading_normals else si.n) * flip
             albedo = si.bsdf().eval_diffuse_reflectance(si, active)[0]
+            cos_in = None                                  # used by the pressure models only
             if not intensity:
                 cos_in = -dr.dot(n_geo, ray.d)
                 active &= cos_in > 1e-6
@@ -667,22 +657,9 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
 
             if bounce > 0 or self.bounce1 == "cone":
                 # Next-event connection to the point receiver.
-                to_rx = p_rx - si.p
-                dist2 = dr.squared_norm(to_rx)
-                dist = dr.sqrt(dist2)
-                w_rx = to_rx / dist
-                cos_out = dr.maximum(dr.dot(n_shade, w_rx), 0.0)
-                c_rx = -dr.dot(w_rx, b_rx)
-                if intensity:
-                    value = (throughput * albedo * dr.inv_pi * cos_out
-                             * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
-                else:
-                    value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
-                             * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
-                connect = active & (dr.dot(n_geo, w_rx) > 0.0) & (value != 0.0)
-                if ray_stats is not None:
-                    ray_stats["shadow"] = ray_stats.get("shadow", 0) + int(dr.count(connect)[0])
-                connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
+                value, dist, w_rx, connect = self._connect_rx(
+                    scene, si, p_rx, b_rx, n_shade, n_geo, throughput, albedo, cos_in, active,
+                    intensity, ctx, ray_stats)
                 values = [value]
                 if self.complex_output:
                     values = [value * dr.cos(phase), value * dr.sin(phase)]
@@ -718,6 +695,29 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                 else:   # σ/(2π) / pdf with σ = sqrt(ρ cosθ_i cosθ_o)
                     throughput *= dr.sqrt(albedo * cos_in * cos_new) * (0.5 * dr.inv_pi) * inv_pdf
                 ray = self._continue_ray(si.p, d_new)
+
+    def _connect_rx(self, scene, si, p_rx, b_rx, n_shade, n_geo, throughput, albedo, cos_in,
+                    active, intensity: bool, ctx, ray_stats=None):
+        """Next-event connection of vertex ``si`` to the point receiver: (value, |x − rx|,
+        unit direction to the receiver, connected mask). Intensity: throughput·ρ/π·cosθ_o·b_R/r²; pressure/coherent:
+        throughput·√(ρ cosθ_i cosθ_o)/(2π)·a_R/r (supplemental Eq. (1)). Shadow ray included."""
+        to_rx = p_rx - si.p
+        dist2 = dr.squared_norm(to_rx)
+        dist = dr.sqrt(dist2)
+        w_rx = to_rx / dist
+        cos_out = dr.maximum(dr.dot(n_shade, w_rx), 0.0)
+        c_rx = -dr.dot(w_rx, b_rx)
+        if intensity:
+            value = (throughput * albedo * dr.inv_pi * cos_out
+                     * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
+        else:
+            value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
+                     * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
+        connect = active & (dr.dot(n_geo, w_rx) > 0.0) & (value != 0.0)
+        if ray_stats is not None:
+            ray_stats["shadow"] = ray_stats.get("shadow", 0) + int(dr.count(connect)[0])
+        connect &= ~scene.ray_test(si.spawn_ray_to(p_rx), connect)
+        return value, dist, w_rx, connect
 
     def _guide(self, scene):
         """Bounding sphere (centre, radius) of the scene's non-flat shapes, or None."""
