@@ -80,6 +80,37 @@ def load_gt_mesh(path: str | Path) -> trimesh.Trimesh:
 
 # ------------------------------------------------------------------- containment
 
+def _triangle_pairs(counts: np.ndarray, chunk: int = 2_000_000):
+    """Yield (triangle index t, index within that triangle's candidates) per candidate pair,
+    ``counts[i]`` candidates for triangle i, in groups of about ``chunk`` pairs (bounded
+    memory)."""
+    keep = np.nonzero(counts)[0]
+    start = 0
+    while start < len(keep):
+        csum = np.cumsum(counts[keep[start:]])
+        stop = start + max(1, int(np.searchsorted(csum, chunk, "right")))
+        ids = keep[start:stop]
+        start = stop
+        cnt = counts[ids]
+        yield np.repeat(ids, cnt), np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+
+
+def _crossings(tri, pb, pc, t, qb, qc, axis: int):
+    """Where the line through (qb, qc) along ``axis`` meets triangle t (projected corners
+    ``pb``, ``pc`` [F, 3]): (hit mask, ``axis`` coordinate of each hit), by barycentric weights
+    of the point in the projected triangle."""
+    xb, xc = pb[t], pc[t]
+    d = (xb[:, 1] - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
+    w1 = (qb - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (qc - xc[:, 0])
+    w2 = (xb[:, 1] - xb[:, 0]) * (qc - xc[:, 0]) - (qb - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w1, w2 = w1 / d, w2 / d
+        w0 = 1.0 - w1 - w2
+    hit = (np.abs(d) > 0) & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+    za = tri[t[hit], :, axis]
+    return hit, za[:, 0] * w0[hit] + za[:, 1] * w1[hit] + za[:, 2] * w2[hit]
+
+
 def _axis_parity(tri: np.ndarray, coords: list[np.ndarray], axis: int) -> np.ndarray:
     """Inside-parity of every lattice point from rays parallel to ``axis``.
 
@@ -100,33 +131,10 @@ def _axis_parity(tri: np.ndarray, coords: list[np.ndarray], axis: int) -> np.nda
     counts = nb * nc
     # uint8 crossing counts: wrap-around at 256 keeps the parity (256 is even)
     toggles = np.zeros((len(bs), len(cs), len(As) + 1), dtype=np.uint8)
-    chunk = 2_000_000
-    keep = np.nonzero(counts)[0]
-    start = 0
-    while start < len(keep):  # bounded memory: triangles in groups of ~chunk pairs
-        csum = np.cumsum(counts[keep[start:]])
-        stop = start + max(1, int(np.searchsorted(csum, chunk, "right")))
-        ids = keep[start:stop]
-        start = stop
-        cnt = counts[ids]
-        t = np.repeat(ids, cnt)
-        local = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    for t, local in _triangle_pairs(counts):
         ib = b0[t] + local // nc[t]
         ic = c0[t] + local % nc[t]
-        qb, qc = bs[ib], cs[ic]
-        xb, xc = pb[t], pc[t]
-        # barycentric weights of the point in the projected triangle
-        d = (xb[:, 1] - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - \
-            (xb[:, 2] - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
-        w1 = ((qb - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (qc - xc[:, 0]))
-        w2 = ((xb[:, 1] - xb[:, 0]) * (qc - xc[:, 0]) - (qb - xb[:, 0]) * (xc[:, 1] - xc[:, 0]))
-        ok = np.abs(d) > 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            w1, w2 = w1 / d, w2 / d
-            w0 = 1.0 - w1 - w2
-        hit = ok & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
-        za = tri[t[hit], :, axis]
-        z = za[:, 0] * w0[hit] + za[:, 1] * w1[hit] + za[:, 2] * w2[hit]
+        hit, z = _crossings(tri, pb, pc, t, bs[ib], cs[ic], axis)
         k = np.searchsorted(As, z, "right")  # first lattice point beyond the crossing
         np.add.at(toggles, (ib[hit], ic[hit], k), 1)
     parity = (np.cumsum(toggles[:, :, :-1], axis=2, dtype=np.uint8) % 2).astype(bool)
@@ -374,27 +382,9 @@ def _points_axis_parity(tri: np.ndarray, pts: np.ndarray, axis: int) -> np.ndarr
     i0 = np.searchsorted(bs, pb.min(1), "left")
     counts = np.searchsorted(bs, pb.max(1), "right") - i0
     crossings = np.zeros(len(pts), dtype=np.int64)
-    keep = np.nonzero(counts)[0]
-    start, chunk = 0, 2_000_000
-    while start < len(keep):  # bounded memory: triangles in groups of ~chunk candidate pairs
-        csum = np.cumsum(counts[keep[start:]])
-        stop = start + max(1, int(np.searchsorted(csum, chunk, "right")))
-        ids = keep[start:stop]
-        start = stop
-        cnt = counts[ids]
-        t = np.repeat(ids, cnt)
-        j = order[i0[t] + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
-        qb, qc = pts[j, b], pts[j, c]
-        xb, xc = pb[t], pc[t]
-        d = (xb[:, 1] - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
-        w1 = (qb - xb[:, 0]) * (xc[:, 2] - xc[:, 0]) - (xb[:, 2] - xb[:, 0]) * (qc - xc[:, 0])
-        w2 = (xb[:, 1] - xb[:, 0]) * (qc - xc[:, 0]) - (qb - xb[:, 0]) * (xc[:, 1] - xc[:, 0])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            w1, w2 = w1 / d, w2 / d
-            w0 = 1.0 - w1 - w2
-        hit = (np.abs(d) > 0) & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
-        za = tri[t[hit], :, axis]
-        z = za[:, 0] * w0[hit] + za[:, 1] * w1[hit] + za[:, 2] * w2[hit]
+    for t, local in _triangle_pairs(counts):
+        j = order[i0[t] + local]
+        hit, z = _crossings(tri, pb, pc, t, pts[j, b], pts[j, c], axis)
         below = z < pts[j[hit], axis]
         np.add.at(crossings, j[hit][below], 1)
     return crossings % 2 == 1
