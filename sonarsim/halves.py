@@ -63,10 +63,12 @@ class Sampling:
         return Sampling(paths, spacing)
 
     def describe(self) -> str:
-        text = f"{self.paths_per_pose} paths/pose"
+        """The density that drives the estimate: the surface strata with the surface
+        estimator (its samples also start bounces >= 2, so no TX-cone paths are traced),
+        else the TX-cone paths per pose."""
         if self.surface_spacing is not None:
-            text += f", surface spacing {self.surface_spacing * 1e3:.3g} mm"
-        return text
+            return f"surface spacing {self.surface_spacing * 1e3:.3g} mm"
+        return f"{self.paths_per_pose} paths/pose"
 
 
 @dataclass(frozen=True)
