@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.fft
-import scipy.signal
 
 from .errors import FormatError, InputError
 
@@ -95,6 +94,7 @@ def lfm(f_start: float, f_stop: float, duration: float, fs: float,
     if max(f_start, f_stop) > fs / 2:
         raise InputError(f"LFM band {f_start}–{f_stop} Hz exceeds the Nyquist frequency {fs / 2} Hz")
     t = np.arange(n) / fs
+    import scipy.signal    # lazily: it costs most of a command's start-up and only pulses need it
     chirp = scipy.signal.chirp(t, f0=f_start, t1=duration, f1=f_stop, method="linear", phi=0)
     return chirp * scipy.signal.windows.tukey(n, window_ratio)
 
@@ -323,6 +323,7 @@ def fft_upsample(x, factor: int, axis: int = -1) -> np.ndarray:
     factor = int(factor)
     if factor == 1:
         return arr.copy()
+    import scipy.signal
     return scipy.signal.resample(arr, arr.shape[axis] * factor, axis=axis)
 
 
