@@ -173,3 +173,11 @@ def _grid(args, dataset) -> Grid:
                              "along an axis")
         shape = tuple(int(round(n)) + 1 for n in counts)
     return Grid(bounds, shape)
+
+
+def write_volume(vol, args, summary: str) -> int:
+    """Record the dataset a volume came from, write it to ``--out`` and say so (exit 0)."""
+    vol.params["dataset"] = str(args.dataset)
+    vol.write(args.out)
+    print(f"wrote {args.out}: {summary}")
+    return 0

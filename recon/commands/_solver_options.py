@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import typing
 
 from . import _common
 
@@ -90,9 +89,7 @@ def run(args, network: bool) -> int:
     vol = solver.solve(ds, grid, network=network, method=method, preset=args.preset,
                        checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
                        resume=args.resume, progress=not args.no_progress, **kw)
-    vol.params["dataset"] = str(args.dataset)
-    vol.write(args.out)
     what = "neural backprojection" if network else "gradient descent"
-    print(f"wrote {args.out}: {what}, {settings.iterations} iterations on {grid.shape} voxels, "
-          f"final loss {vol.params['final_loss']:.4g} (data {vol.params['final_data_loss']:.4g})")
-    return 0
+    return _common.write_volume(
+        vol, args, f"{what}, {settings.iterations} iterations on {grid.shape} voxels, final "
+                   f"loss {vol.params['final_loss']:.4g} (data {vol.params['final_data_loss']:.4g})")

@@ -55,7 +55,5 @@ def run(args: argparse.Namespace) -> int:
                                incoherent=args.incoherent, tx_beam_mask=args.beam_mask,
                                per_ping_sound_speed=not args.mean_sound_speed,
                                progress=not args.no_progress)
-    vol.params["dataset"] = str(args.dataset)
-    vol.write(args.out)
-    print(f"wrote {args.out}: backprojection of {ds.n_pings} pings on {grid.shape} voxels")
-    return 0
+    return _common.write_volume(vol, args, f"backprojection of {ds.n_pings} pings on "
+                                           f"{grid.shape} voxels")

@@ -35,7 +35,5 @@ def run(args: argparse.Namespace) -> int:
                     taper=args.taper, eps=args.eps,
                     per_ping_sound_speed=not args.mean_sound_speed,
                     progress=not args.no_progress)
-    vol.params["dataset"] = str(args.dataset)
-    vol.write(args.out)
-    print(f"wrote {args.out}: polar formatting of {ds.n_pings} pings on {grid.shape} voxels")
-    return 0
+    return _common.write_volume(vol, args, f"polar formatting of {ds.n_pings} pings on "
+                                           f"{grid.shape} voxels")
