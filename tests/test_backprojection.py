@@ -214,7 +214,7 @@ def test_bad_options_and_empty_dataset_raise_input_error(point_ds, grid3d):
         bp.solve(empty, grid3d, progress=False)
 
 
-def test_real_airsas_scan_target_is_on_the_turntable(shared_data):
+def test_real_airsas_scan_target_is_on_the_turntable(real_scan, turntable_plane):
     """BP of the real 5 kHz AirSAS scan at z = 0 over ±0.3 m.
 
     The cut-out target stands on the turntable, centred on the rotation axis. Statistic:
@@ -223,16 +223,8 @@ def test_real_airsas_scan_target_is_on_the_turntable(shared_data):
     the control — the same data with the time axis mislabelled by 150 samples (0.52 m of
     round-trip path, 0.26 m of range) — spreads it into a ring and fails the same statistic.
     """
-    airsas = pytest.importorskip("sonarsim.importers.airsas")
-    scan = shared_data / "airsas_real" / "small_features_cutout_5k"
-    bg = shared_data / "airsas_real" / "bg_5k"
-    if not scan.is_dir():
-        pytest.skip("real AirSAS scan not present")
-    ds = airsas.import_airsas(scan, bg if bg.is_dir() else None, progress=False)
-    g = Grid([[-0.3, 0.3], [-0.3, 0.3], [0.0, 0.0]], (121, 121, 1))
-    x, y, _ = g.axes()
-    X, Y = np.meshgrid(x, y, indexing="ij")
-    near = np.hypot(X, Y) < 0.15
+    ds = real_scan
+    g, X, Y, near = turntable_plane
 
     def stats(dataset):
         e = np.abs(bp.backproject(dataset, g, progress=False)[:, :, 0]) ** 2

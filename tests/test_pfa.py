@@ -114,19 +114,11 @@ def test_far_field_defocus_grows_with_distance_from_the_reference_point():
     assert peaks[2] < 0.5
 
 
-def test_real_airsas_scan_target_is_on_the_turntable(shared_data):
+def test_real_airsas_scan_target_is_on_the_turntable(real_scan, turntable_plane):
     """PFA of the real 5 kHz AirSAS 2-D scan (the statistic of the backprojection test):
     most image energy within 0.15 m of the rotation axis, none for mislabelled time."""
-    airsas = pytest.importorskip("sonarsim.importers.airsas")
-    scan = shared_data / "airsas_real" / "small_features_cutout_5k"
-    bg = shared_data / "airsas_real" / "bg_5k"
-    if not scan.is_dir():
-        pytest.skip("real AirSAS scan not present")
-    ds = airsas.import_airsas(scan, bg if bg.is_dir() else None, progress=False)
-    g = Grid([[-0.3, 0.3], [-0.3, 0.3], [0.0, 0.0]], (121, 121, 1))
-    x, y, _ = g.axes()
-    X, Y = np.meshgrid(x, y, indexing="ij")
-    near = np.hypot(X, Y) < 0.15
+    ds = real_scan
+    g, X, Y, near = turntable_plane
 
     def frac(dataset):
         e = np.abs(pfa.solve(dataset, g, progress=False).volume[:, :, 0]) ** 2
