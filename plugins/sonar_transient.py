@@ -532,10 +532,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             else:
                 length += seg
             prev_p = si.p
-            flip = dr.select(dr.dot(si.n, ray.d) > 0.0, -1.0, 1.0)
-            n_geo_v = si.n * flip
-            n_sh_v = (si.sh_frame.n if self.shading_normals else si.n) * flip
-            albedo = si.bsdf().eval_diffuse_reflectance(si, active)[0]
+            n_geo_v, n_sh_v, albedo = self._arrival(si, ray, active)
             if not intensity:
                 cos_in = -dr.dot(n_geo_v, ray.d)
                 active &= cos_in > 1e-6
@@ -642,11 +639,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             seg = dr.norm(si.p - prev_p)
             length += seg
             prev_p = si.p
-            # Two-sided surfaces: orient the normals towards the side the path arrives from.
-            flip = dr.select(dr.dot(si.n, ray.d) > 0.0, -1.0, 1.0)
-            n_geo = si.n * flip
-            n_shade = (si.sh_frame.n if self.shading_normals else si.n) * flip
-            albedo = si.bsdf().eval_diffuse_reflectance(si, active)[0]
+            n_geo, n_shade, albedo = self._arrival(si, ray, active)
             cos_in = None                                  # used by the pressure models only
             if not intensity:
                 cos_in = -dr.dot(n_geo, ray.d)
@@ -695,6 +688,13 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                 else:   # σ/(2π) / pdf with σ = sqrt(ρ cosθ_i cosθ_o)
                     throughput *= dr.sqrt(albedo * cos_in * cos_new) * (0.5 * dr.inv_pi) * inv_pdf
                 ray = self._continue_ray(si.p, d_new)
+
+    def _arrival(self, si, ray, active):
+        """(geometric normal, shading normal, albedo) at the vertex a ray arrives at; the
+        surfaces are two-sided, so both normals face the side the ray comes from."""
+        flip = dr.select(dr.dot(si.n, ray.d) > 0.0, -1.0, 1.0)
+        n_shade = (si.sh_frame.n if self.shading_normals else si.n) * flip
+        return si.n * flip, n_shade, si.bsdf().eval_diffuse_reflectance(si, active)[0]
 
     def _connect_rx(self, scene, si, p_rx, b_rx, n_shade, n_geo, throughput, albedo, cos_in,
                     active, intensity: bool, ctx, ray_stats=None):
