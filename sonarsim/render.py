@@ -1,8 +1,10 @@
 """Chunked transient rendering: many sonar poses through the ``sonar_transient`` integrator.
 
-:func:`render` returns a :class:`sonarsim.dataset.Transients` (float32 [N, B, T] energy
-histograms over round-trip path length, one per bounce); :func:`iter_render` yields the
-same histograms chunk by chunk for streaming, optionally as two independent
+:func:`render_poses` returns a :class:`sonarsim.dataset.Transients` (float32 [N, B, T] energy
+histograms over round-trip path length, one per bounce) in memory; :func:`render_to_file`
+writes the same histograms to a transients file chunk by chunk (memory bounded by one
+chunk, whatever N; what ``sonarsim render`` does); :func:`iter_render` yields them
+chunk by chunk, optionally as two independent
 half-estimates (``halves=True``: [2, n, B, T], their mean is the estimate) and, for the
 'coherent' amplitude model, complex64 (docs/transient_rendering.md). Poses are split into chunks whose histogram
 buffers fit a memory budget and whose lane count (poses × paths) stays below 2³²; each
@@ -21,11 +23,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator, Mapping
 
 import numpy as np
 
-from .dataset import Transients
+from .dataset import Transients, atomic_write_h5
 from .errors import InputError
 from .geometry import CropWindow, Poses, SceneBox, crop_window
 from .progress import progress_bar
@@ -122,6 +125,16 @@ def choose_chunk_size(paths_per_pose: int, bounces: int, n_bins: int,
     by_lanes = _LANE_LIMIT // paths_per_pose
     by_bins = _LANE_LIMIT // (bounces * n_bins * int(buffers))
     return int(max(1, min(by_memory, by_lanes, by_bins)))
+
+
+def chunk_memory(n_poses: int, paths_per_pose: int, bounces: int, n_bins: int,
+                 chunk_size: int | None = None,
+                 memory_budget: int = DEFAULT_MEMORY_BUDGET) -> tuple[int, int]:
+    """(poses per chunk, bytes of its histogram buffers while it is rendered) for a render
+    of ``n_poses`` poses: what :func:`iter_render` holds at once, whatever ``n_poses``."""
+    chunk = chunk_size or choose_chunk_size(paths_per_pose, bounces, n_bins, memory_budget)
+    chunk = max(1, min(int(chunk), n_poses))
+    return chunk, chunk * _BYTES_PER_BIN * bounces * n_bins
 
 
 def estimator_props(bounce1: str | None = None, amplitude: str = "intensity",
@@ -224,7 +237,7 @@ def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: 
            memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True,
            bounce1: str | None = None, amplitude: str = "intensity",
            surface_spacing: float | None = None, speckle_seed: int = 0) -> Transients:
-    """Render energy transients [N, bounces, T] for every pose of ``poses``.
+    """Render energy transients [N, bounces, T] for every pose of ``poses``, in memory.
 
     scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
     paths_per_pose: TX-cone Monte-Carlo paths per pose (only with bounce1="cone"; the
@@ -241,7 +254,90 @@ def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: 
     integrator's). amplitude: 'intensity' (energy) or 'pressure' (the seed's Eq. (1)); the
     complex 'coherent' model cannot be stored in a float32 transients file (use
     :func:`iter_render` or ``simulate``). speckle_seed: unused here.
+
+    The result holds N·bounces·T float32 values (9.3 GB for the 54 000-pose scan at 3
+    bounces); :func:`render_to_file` streams the same values to a file instead.
     """
+    plan = _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed,
+                 path_range, seed, beams, box, bounce1, amplitude, surface_spacing,
+                 speckle_seed)
+    out = np.empty((len(poses), plan.bounces, plan.window.n_bins), np.float32)
+    for sl, hist in _plan_chunks(scene, poses, plan, chunk_size, memory_budget, progress):
+        out[sl] = hist
+    return plan.transients(out, poses)
+
+
+def render_to_file(scene, poses: Poses, out, *, meta: Mapping | None = None,
+                   paths_per_pose: int = 10_000, bounces: int = 3, fs: float = 100e3,
+                   oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
+                   path_range=None, seed: int = 0, chunk_size: int | None = None,
+                   beams: Mapping | None = None, box: SceneBox | None = None,
+                   memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True,
+                   bounce1: str | None = None, amplitude: str = "intensity",
+                   surface_spacing: float | None = None,
+                   speckle_seed: int = 0) -> tuple[Path, tuple[int, int, int], PathWindow]:
+    """Render like :func:`render_poses` and write the transients file ``out`` chunk by chunk.
+
+    Each chunk of poses is written to the file's ``transients`` dataset [N, bounces, T]
+    (float32) as soon as it is rendered, so memory holds one chunk (``memory_budget``
+    bytes of histogram buffers, default 768 MiB), whatever the number of poses. The file
+    is written under a temporary name in ``out``'s directory with root attribute
+    ``complete = False`` and renamed to ``out`` only when every pose is in
+    (:func:`sonarsim.dataset.atomic_write_h5`); an interrupted run leaves no file at
+    ``out``. The file equals ``render_poses(...).write(out)`` with the same arguments and
+    ``meta`` merged into the transients' meta (the bytes of ``transients`` are the same
+    for the same ``chunk_size``; across chunk sizes up to a rare 1-ulp difference,
+    see the integrator's doc). Returns (out, (N, bounces, T), window).
+    """
+    plan = _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed,
+                 path_range, seed, beams, box, bounce1, amplitude, surface_spacing,
+                 speckle_seed)
+    shape = (len(poses), plan.bounces, plan.window.n_bins)
+    # A validated header: the real one but for a one-bin stand-in of the histograms.
+    header = plan.transients(np.zeros(shape[:2] + (1,), np.float32), poses, meta)
+
+    def fill(f) -> None:
+        header._write_group(f, data=False)      # attributes, pings/tx, pings/rx, meta
+        f.attrs["complete"] = False             # until the last chunk is in
+        # Contiguous, no fill value: every pose is written exactly once.
+        data = f.create_dataset("transients", shape=shape, dtype=np.float32)
+        for sl, hist in _plan_chunks(scene, poses, plan, chunk_size, memory_budget, progress):
+            data[sl.start:sl.stop] = hist
+            del hist
+        f.attrs["complete"] = True
+
+    return atomic_write_h5(out, fill), shape, plan.window
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Checked settings of one render: window, estimator properties and file metadata."""
+
+    paths_per_pose: int
+    bounces: int
+    seed: int
+    window: PathWindow
+    beams: Mapping | None
+    bounce1: str | None
+    amplitude: str
+    surface_spacing: float | None
+    speckle_seed: int
+    sound_speed: float
+    fs: float
+    oversample: int
+    meta: dict
+
+    def transients(self, data: np.ndarray, poses: Poses,
+                   meta: Mapping | None = None) -> Transients:
+        """The validated :class:`Transients` of ``data`` [N, bounces, T], ``meta`` added."""
+        return Transients(data, self.window.path_start, self.window.bin_width,
+                          self.sound_speed, self.fs, self.oversample, poses.tx, poses.rx,
+                          {**self.meta, **dict(meta or {})})
+
+
+def _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed, path_range,
+          seed, beams, box, bounce1, amplitude, surface_spacing, speckle_seed) -> _Plan:
+    """Check the settings of :func:`render_poses`/:func:`render_to_file`; window and meta."""
     paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
     props = estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)
     if amplitude == "coherent":
@@ -251,13 +347,6 @@ def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: 
         box = scene_box(scene)
     window = path_window(scene, poses, fs=fs, oversample=oversample, sound_speed=sound_speed,
                          path_range=path_range, box=box)
-    out = np.empty((len(poses), bounces, window.n_bins), np.float32)
-    for sl, hist in iter_render(scene, poses, paths_per_pose=paths_per_pose, bounces=bounces,
-                                seed=seed, chunk_size=chunk_size, beams=beams,
-                                memory_budget=memory_budget, progress=progress, window=window,
-                                bounce1=bounce1, amplitude=amplitude,
-                                surface_spacing=surface_spacing):
-        out[sl] = hist
     meta = {"integrator": "sonar_transient", "mode": amplitude, "amplitude_model": amplitude,
             "bounce1": props.get("bounce1", "surface"),
             **{k: v for k, v in props.items() if k == "surface_spacing"},
@@ -266,8 +355,17 @@ def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: 
             "window": "path_range" if path_range is not None else "crop_window"}
     if path_range is None:
         meta["window_box"] = np.stack([box.lo, box.hi], axis=1).tolist()   # [[x0,x1],[y0,y1],[z0,z1]] m
-    return Transients(out, window.path_start, window.bin_width, float(sound_speed), float(fs),
-                      int(oversample), poses.tx, poses.rx, meta)
+    return _Plan(paths_per_pose, bounces, seed, window, beams, bounce1, amplitude,
+                 surface_spacing, speckle_seed, float(sound_speed), float(fs), int(oversample),
+                 meta)
+
+
+def _plan_chunks(scene, poses, plan: _Plan, chunk_size, memory_budget, progress):
+    return iter_render(scene, poses, paths_per_pose=plan.paths_per_pose, bounces=plan.bounces,
+                       seed=plan.seed, chunk_size=chunk_size, beams=plan.beams,
+                       memory_budget=memory_budget, progress=progress, window=plan.window,
+                       bounce1=plan.bounce1, amplitude=plan.amplitude,
+                       surface_spacing=plan.surface_spacing)
 
 
 # ---------------------------------------------------------------------------- helpers

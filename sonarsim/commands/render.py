@@ -1,22 +1,21 @@
 """``sonarsim render SCENE --poses POSES --out T.h5``: energy transients of a scene.
 
 Writes a transients file (per-bounce histograms over round-trip path length; schema in
-docs/formats.md) atomically. The whole file is assembled in memory: N·B·T·4 bytes (the
-54 000-pose scan at 3 bounces is 9.3 GB); for long scans use ``sonarsim simulate
---keep-transients``, which streams.
+docs/formats.md) chunk by chunk (:func:`sonarsim.render.render_to_file`): memory holds one
+chunk of poses (a budget of 768 MiB of histogram buffers), whatever the number of poses;
+the file (N·B·T·4 bytes: 9.3 GB for the 54 000-pose scan at 3 bounces over the reference
+window) is written under a temporary name and renamed when complete.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
+from ..errors import InputError
 from ._render_common import (add_render_arguments, add_scene_and_pose_arguments, beams_from_args,
                              check_common, parity_meta, parity_poses)
 
 HELP = "Render per-bounce energy transients (path-length histograms) of a scene for a set of poses."
-
-MEMORY_NOTE_BYTES = 4 * 2**30
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_and_pose_arguments(parser, "output transients file (.h5)")
@@ -29,20 +28,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_render_arguments(parser, bounces_help="default 3; 1 with --reference-parity")
 
 
-def _check_memory(scene, poses, args, box) -> None:
-    """Refuse a render whose transients cannot fit in memory (one line, not a MemoryError)."""
-    from ..render import path_window
+def _check_resources(scene, poses, args, box) -> None:
+    """Refuse, before rendering, a render whose file cannot fit on the output's disk or
+    whose chunk buffers cannot fit in memory (one line each)."""
+    import shutil
+
+    from .. import limits
+    from ..render import chunk_memory, path_window
     window = path_window(scene, poses, fs=args.fs, oversample=args.oversample,
                          sound_speed=args.sound_speed, path_range=args.path_range, box=box)
-    from .. import limits
-    need = len(poses) * args.bounces * window.n_bins * 4
-    limits.check_memory(need, "the transients", f"{len(poses)} poses x {args.bounces} bounces "
-                        f"x {window.n_bins} bins", "render fewer poses, or use `sonarsim "
-                        "simulate --keep-transients`, which streams to disk")
+    per_pose = args.bounces * window.n_bins
+    size = f"{len(poses)} poses x {args.bounces} bounces x {window.n_bins} bins"
+    file_bytes = len(poses) * per_pose * 4
+    free = shutil.disk_usage(args.out.resolve().parent).free
+    if file_bytes > free:
+        raise InputError(f"the transients file needs {limits.gib(file_bytes)} ({size}) but "
+                         f"{args.out.resolve().parent} has {limits.gib(free)} free; render "
+                         f"fewer poses or bins (--path-range, --oversample)")
+    chunk, need = chunk_memory(len(poses), args.paths_per_pose or 1, args.bounces,
+                               window.n_bins, args.chunk_size)
+    limits.check_memory(need, "one chunk of transients",
+                        f"{chunk} poses x {args.bounces} bounces x {window.n_bins} bins",
+                        "lower --chunk-size, --bounces or the number of bins")
 
 
 def _estimator_kwargs(args: argparse.Namespace) -> dict:
-    """Keyword arguments of :func:`sonarsim.render.render_poses` for the estimator and amplitude
+    """Keyword arguments of :func:`sonarsim.render.render_to_file` for the estimator and amplitude
     options (only those that differ from the defaults)."""
     wanted = {"bounce1": args.bounce1_estimator, "surface_spacing": args.surface_spacing,
               "amplitude": None if args.amplitude == "intensity" else args.amplitude,
@@ -53,7 +64,7 @@ def _estimator_kwargs(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from ..geometry import trajectory
-    from ..render import render_poses
+    from ..render import render_to_file
     from ..scene import load_scene
     from ..threads import dr_threads
 
@@ -66,20 +77,19 @@ def run(args: argparse.Namespace) -> int:
     scene = spec.to_mitsuba()
     from .. import limits
     limits.check_fs(args.fs)
-    _check_memory(scene, poses, args, spec.box)
+    _check_resources(scene, poses, args, spec.box)
     estimator = _estimator_kwargs(args)
+    meta = dict(scene=spec.name, scene_source=spec.source, poses=str(args.poses),
+                **parity_meta(args))
     with dr_threads(args.threads):
-        transients = render_poses(scene, poses, paths_per_pose=args.paths_per_pose,
-                                  **estimator, bounces=args.bounces, fs=args.fs,
-                                  oversample=args.oversample, sound_speed=args.sound_speed,
-                                  path_range=args.path_range, seed=args.seed,
-                                  chunk_size=args.chunk_size, beams=beams, box=spec.box,
-                                  progress=not args.no_progress)
-    transients.meta.update(scene=spec.name, scene_source=spec.source, poses=str(args.poses),
-                           **parity_meta(args))
-    transients.write(args.out)
-    size = transients.transients.nbytes
-    print(f"wrote {args.out}: {transients.n_pings} pings x {transients.n_bounces} bounces x "
-          f"{transients.n_bins} bins ({size / 2**20:.1f} MiB), path "
-          f"{transients.path_start:.4f}..{transients.path_end:.4f} m", file=sys.stderr)
+        out, shape, window = render_to_file(
+            scene, poses, args.out, meta=meta, paths_per_pose=args.paths_per_pose,
+            **estimator, bounces=args.bounces, fs=args.fs, oversample=args.oversample,
+            sound_speed=args.sound_speed, path_range=args.path_range, seed=args.seed,
+            chunk_size=args.chunk_size, beams=beams, box=spec.box,
+            progress=not args.no_progress)
+    size = 4 * shape[0] * shape[1] * shape[2]
+    print(f"wrote {out}: {shape[0]} pings x {shape[1]} bounces x {shape[2]} bins "
+          f"({size / 2**20:.1f} MiB), path {window.path_start:.4f}..{window.path_end:.4f} m",
+          file=sys.stderr)
     return 0
