@@ -338,6 +338,19 @@ class VoxelScene:
 # Adam with explicit state
 
 
+def random_directions(m, n: int, seed: int):
+    """``n`` unit vectors (Array3f) uniform on the sphere, from a PCG32 stream per lane seeded
+    by ``seed`` (an opaque value: one compiled kernel for every seed): the directions u of
+    the smoothness priors, drawn on the device instead of as 3·n host normals."""
+    import drjit as dr
+    rng = m.PCG32(n, initstate=dr.opaque(m.UInt64, int(seed) & (2 ** 64 - 1)))
+    z = 1.0 - 2.0 * rng.next_float32()
+    phi = (2.0 * math.pi) * rng.next_float32()
+    r = dr.sqrt(dr.maximum(1.0 - z * z, 0.0))
+    s, c = dr.sincos(phi)
+    return m.Array3f(r * c, r * s, z)
+
+
 def loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings, h,
                reg_on: bool, u_vec, weight: float = 1.0, n_total: int | None = None):
     """Data term and priors (Dr.Jit scalars) of one chunk, weighted by ``weight`` (the
@@ -375,10 +388,11 @@ def loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings, 
     return terms
 
 
-def render_chunk(scene, params, samples, settings: SolverSettings, eps: float):
+def render_chunk(scene, params, samples, settings: SolverSettings, eps: float, field=None):
     """The forward model of one chunk (shared by both representations): (ŷ_re, ŷ_im, σ_re,
-    σ_im) at every lane, through :func:`recon.forward.render`."""
-    return forward.render(scene.bind(params), samples,
+    σ_im) at every lane, through :func:`recon.forward.render`. ``field``: ``scene.bind(params)``
+    if the caller already has it (the voxels' packed buffer is then made once per chunk)."""
+    return forward.render(scene.bind(params) if field is None else field, samples,
                           lambertian_eps=eps if settings.lambertian else None,
                           occlusion_scale=settings.occlusion_scale, with_sigma=True)
 
@@ -547,11 +561,8 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
         pings, bins, roll = sampler.draw()
         reg_on = it >= settings.reg_start
         need_u = reg_on and (settings.smoothness > 0 or settings.phase > 0)
-        u_all = None
-        if need_u:
-            u_all = rng.standard_normal((3, len(pings), settings.n_rays, settings.bins_per_ping),
-                                        dtype=np.float32)
-            u_all /= np.linalg.norm(u_all, axis=0, keepdims=True) + 1e-12
+        n_chunks = -(-len(pings) // chunk)
+        u_seeds = rng.integers(0, 2 ** 63, n_chunks) if need_u else None
         frames = rolled_frames(np.asarray(dataset.boresight)[pings], roll)
         record = {}
         for c0 in range(0, len(pings), chunk):
@@ -562,15 +573,14 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
             samples = forward.EllipsoidSamples(geo, directions, frames=frames[sl])
             u_vec = None
             if need_u:
-                u = u_all[:, sl].reshape(3, settings.n_rays * len(pings[sl]), -1)
-                u = np.resize(u, (3, samples.shape[0] * samples.shape[1] * samples.shape[2]))
-                u_vec = m.Array3f(*(m.Float(u[a]) for a in range(3)))
+                u_vec = random_directions(m, dr.width(samples.points), int(u_seeds[c0 // chunk]))
             t = tgt[pings[sl, None], bins[sl]].ravel()
             t_re, t_im = m.Float(t.real.copy()), m.Float(t.imag.copy())
-            y_re, y_im, s_re, s_im = render_chunk(scene, opt.params, samples, settings, eps)
+            field = scene.bind(opt.params)
+            y_re, y_im, s_re, s_im = render_chunk(scene, opt.params, samples, settings, eps,
+                                                  field=field)
             if taps:
                 y_re, y_im = convolve_rendered(m, y_re, y_im, pos, acf)
-            field = scene.bind(opt.params)
             terms = loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings,
                                scene.h, reg_on, u_vec, weight=len(pings[sl]) / len(pings))
             loss = sum(terms.values())
