@@ -1,131 +1,202 @@
-"""Gradient-descent cost: seconds per iteration and peak memory, and the linear model's
-forward + adjoint against a vectorised NumPy implementation of the same job.
+"""Gradient-descent (voxel) iteration cost: seconds per iteration and peak memory at the 'cpu'
+and 'reference' sampling sizes, on one thread (the deterministic default) and on all threads
+(``--no-deterministic``), and the forward model of one ping against a straightforward NumPy
+implementation of the same model (same samples; the two results are compared too).
 
-Usage: .venv/bin/python benchmarks/bench_gd.py [--iterations N] [--shape NX NY NZ]
+Usage: .venv/bin/python benchmarks/bench_gd.py [--sizes cpu,reference] [--iterations N]
+                                               [--threads 1,all] [--profile] [--shape NX NY NZ]
 
-Reference-sized iteration (reference code inr_reconstruction/): 5 pings × 200 range bins × ~4 800
-rays (num_rays 5000 in the reference → 4 777 rays), on the AirSAS grid 150×150×120, with
-Lambertian normals, occlusion and all priors on. The dataset is a synthetic set of point
-scatterers on a 2-height AirSAS-like scan. The machine is shared: numbers are noisy.
+Sizes (recon.solver.PRESETS sampling): 'cpu' = 5 pings × 64 bins × 600 rays, 'reference' =
+5 pings × 200 bins × 4 777 rays (the reference code's num_rays 5000, max_weights 200) per
+iteration, on the AirSAS grid 150×150×120, with the full model (Lambertian normals from the
+trilinear gradient, occlusion s_occ 1000) and the AirSAS priors (sparsity, smoothness,
+phase) on from the first step. Scene: 20 synthetic point scatterers in the AirSAS box, a
+2-height scan of 360 pings. Each configuration runs in its own process (peak RSS is per
+configuration); the first two iterations (kernel compilation or cache loads) are excluded
+from the median. ``--profile`` adds where one iteration's time goes
+(:class:`recon.solver.PhaseTimer`). ``SONARSIM_VARIANT=cuda_ad_mono`` runs it on a GPU (the
+thread setting is then moot). The machine is shared: numbers are noisy.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
+import subprocess
+import sys
 import time
 
 import numpy as np
+
+SIZES = ("cpu", "reference")
+FULL = dict(lambertian=True, occlusion_scale=1000.0, sparsity=10.0, smoothness=50.0, phase=0.1,
+            reg_start=0, init="random", lr_units="absolute", lr=1e-3)
 
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def numpy_forward_adjoint(points, valid, shape_pjk, grid, x, target):
-    """One linear-model data-gradient evaluation in NumPy: trilinear gather, sum over rays,
-    residual, adjoint scatter (np.bincount). points [L, 3]; returns the gradient voxels."""
-    P, J, K = shape_pjk
+def scene(shape):
+    from recon import synthetic
+    from recon.grid import Grid
+    from sonarsim import geometry
+    box = geometry.AIRSAS_REAL_BOX
+    pts = np.random.default_rng(0).uniform(box.lo, box.hi, (20, 3))
+    ds = synthetic.point_dataset(pts, n_pings=180, heights=(0.05, 0.15),
+                                 scene_box=np.stack([box.lo, box.hi], 1))
+    return ds, Grid.from_box(box, tuple(shape))
+
+
+# ---------------------------------------------------------------------------------------
+# NumPy forward model of one ping (the same model as recon.forward.render)
+
+def numpy_render(points, dirs, t, valid, shape_jk, grid, x, occlusion_scale):
+    """ŷ [K] complex of one ping: trilinear σ (zero outside the grid) and its exact gradient,
+    Lambertian factor max(0, ⟨∇|σ|, d⟩/‖∇|σ|‖), transmittance exp(−2·s_occ·Σ_{i<k}|σ_i|Δt_i),
+    summed over the J rays. points, dirs [J·K, 3], t [J·K], valid [J·K] bool (lane j·K + k)."""
+    J, K = shape_jk
     lo, h = grid.bounds[:, 0], grid.spacing
     n = np.asarray(grid.shape)
     g = (points - lo) / h
     i0 = np.floor(g).astype(np.int64)
     f = g - i0
     flat = x.ravel()
-    vals = np.zeros(len(points), complex)
-    corners = []
+    s = np.zeros(len(points), complex)
+    grad = np.zeros((len(points), 3), complex)
     for c in np.ndindex(2, 2, 2):
         idx = i0 + np.array(c)
         inside = valid & np.all((idx >= 0) & (idx < n), axis=1)
-        w = np.prod(np.where(np.array(c) == 1, f, 1 - f), axis=1) * inside
         lin = np.where(inside, (idx[:, 0] * n[1] + idx[:, 1]) * n[2] + idx[:, 2], 0)
-        vals += w * flat[lin]
-        corners.append((lin, w))
-    y = vals.reshape(P, J, K).sum(axis=1)
-    r = (y - target).reshape(P, 1, K)
-    back = np.broadcast_to(r, (P, J, K)).ravel()
-    grad = np.zeros(flat.size, complex)
-    for lin, w in corners:
-        grad += np.bincount(lin, weights=w * back.real, minlength=flat.size) \
-            + 1j * np.bincount(lin, weights=w * back.imag, minlength=flat.size)
-    return grad
+        v = np.where(inside, flat[lin], 0)
+        wk = np.where(np.array(c) == 1, f, 1 - f)                  # per-axis weights [L, 3]
+        s += np.prod(wk, axis=1) * v
+        for a in range(3):
+            dw = (1.0 if c[a] else -1.0) / h[a] * np.prod(np.delete(wk, a, axis=1), axis=1)
+            grad[:, a] += dw * v
+    mag = np.sqrt(np.abs(s) ** 2 + 1e-20)
+    gm = (grad.real * s.real[:, None] + grad.imag * s.imag[:, None]) / mag[:, None]
+    lam = np.maximum(0.0, np.sum(gm * dirs, axis=1) / np.sqrt(np.sum(gm ** 2, axis=1) + 1e-30))
+    tt = t.reshape(J, K)
+    step = np.empty_like(tt)
+    step[:, :-1] = tt[:, 1:] - tt[:, :-1]
+    step[:, -1] = step[:, -2] if K > 1 else 0.0
+    dens = (mag * valid).reshape(J, K) * step
+    trans = np.exp(-2.0 * occlusion_scale * (np.cumsum(dens, axis=1) - dens))
+    return np.sum((s * valid).reshape(J, K) * lam.reshape(J, K) * trans, axis=0)
+
+
+def forward_vs_numpy(ds, grid, size, repeats=3):
+    """(Dr.Jit s, NumPy s, max relative difference) for the full forward model of one ping."""
+    import drjit as dr
+    from recon import forward as F
+    from recon import measurements, solver
+    settings = solver.settings_for(size, **FULL)
+    speeds = measurements.sound_speeds(ds)
+    tgt = solver.targets(ds, settings)
+    first, last = solver.reachable_bins(ds, grid, speeds)
+    one = solver.settings_for(size, **dict(FULL, pings_per_iteration=1))
+    pings, bins, _ = solver.Sampler(tgt, first, last, one, np.random.default_rng(1)).draw()
+    samples = F.EllipsoidSamples(F.ping_geometry(ds, pings, bins, speeds),
+                                 F.cone_directions(settings.n_rays, settings.beamwidth_deg))
+    vf = F.VoxelField(grid)
+    m = vf.m
+    rng = np.random.default_rng(2)
+    x = (rng.standard_normal(grid.size) + 1j * rng.standard_normal(grid.size)).astype(np.complex64)
+    re, im = m.Float(x.real.copy()), m.Float(x.imag.copy())
+    eps = 0.5 * float(np.min(vf.h))
+
+    def jit_forward():
+        y = F.render(vf.field(re, im), samples, lambertian_eps=eps,
+                     occlusion_scale=settings.occlusion_scale)
+        dr.eval(y)
+        dr.sync_thread()
+        return y
+
+    jit_forward()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        y_re, y_im = jit_forward()
+        times.append(time.perf_counter() - t0)
+    _, J, K = samples.shape
+    pts = np.array(samples.points).T.astype(np.float64)
+    dirs = np.array(samples.dirs).T.astype(np.float64)
+    t0 = time.perf_counter()
+    y_np = numpy_render(pts, dirs, np.asarray(samples.t, np.float64), np.asarray(samples.valid),
+                        (J, K), grid, x.reshape(grid.shape), settings.occlusion_scale)
+    t_np = time.perf_counter() - t0
+    y = np.asarray(y_re) + 1j * np.asarray(y_im)
+    diff = float(np.abs(y - y_np).max() / max(np.abs(y_np).max(), 1e-30))
+    return float(np.median(times)), t_np, diff
+
+
+# ---------------------------------------------------------------------------------------
+# One configuration (in its own process)
+
+def one(size, threads, iterations, shape, profile):
+    from recon import gradient_descent as gd
+    from recon import solver
+    ds, grid = scene(shape)
+    stamps = []
+    timer = solver.PhaseTimer(skip=2) if profile else None
+    solver.solve(ds, grid, network=False, method="gd", preset=size, iterations=iterations,
+                 progress=False, deterministic=(threads == "1"), timer=timer,
+                 callback=lambda i, r: stamps.append(time.perf_counter()), **FULL)
+    out = {"size": size, "threads": threads,
+           "s_per_iteration": float(np.median(np.diff(stamps[1:]))) if len(stamps) > 3 else None,
+           "peak_rss_mb": peak_rss_mb()}
+    if timer is not None:
+        out["profile"] = timer.rows()
+        timer.close()
+    s = gd.settings_for(size)
+    out["samples"] = s.pings_per_iteration * s.bins_per_ping * s.n_rays
+    if threads != "1":
+        out["forward_jit_s"], out["forward_numpy_s"], out["forward_diff"] = \
+            forward_vs_numpy(ds, grid, size)
+    print("RESULT " + json.dumps(out))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--iterations", type=int, default=6)
+    ap.add_argument("--iterations", type=int, default=7)
+    ap.add_argument("--sizes", default=",".join(SIZES))
+    ap.add_argument("--threads", default="1,all", help="'1' (deterministic), 'all' or both")
     ap.add_argument("--shape", type=int, nargs=3, default=(150, 150, 120))
-    ap.add_argument("--rays", type=int, default=4777)
-    ap.add_argument("--bins", type=int, default=200)
+    ap.add_argument("--profile", action="store_true", help="where the time of an iteration goes")
+    ap.add_argument("--one", nargs=2, metavar=("SIZE", "THREADS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-
-    import drjit as dr
-    from recon import forward as F
-    from recon import gradient_descent as gd
-    from recon import measurements, synthetic
-    from recon.grid import Grid
-    from sonarsim import geometry
-
-    box = geometry.AIRSAS_REAL_BOX
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(box.lo, box.hi, (20, 3))
-    ds = synthetic.point_dataset(pts, n_pings=360, heights=(0.05, 0.15),
-                                 scene_box=np.stack([box.lo, box.hi], 1))
-    grid = Grid.from_box(box, tuple(args.shape))
-    rows = []
-    for label, kw in [("full model", dict(lambertian=True, occlusion_scale=1000.0, sparsity=10.0,
-                                          smoothness=50.0, phase=0.1)),
-                      ("linear model", dict(lambertian=False, occlusion_scale=0.0, sparsity=0.0))]:
-        stamps = []
-        t0 = time.perf_counter()
-        gd.solve(ds, grid, iterations=args.iterations, n_rays=args.rays, bins_per_ping=args.bins,
-                 reg_start=0, progress=False, callback=lambda i, r: stamps.append(time.perf_counter()),
-                 **kw)
-        per_it = np.median(np.diff(stamps)) if len(stamps) > 2 else (time.perf_counter() - t0)
-        rows.append((label, per_it, peak_rss_mb()))
-
-    # Linear model: Dr.Jit forward + AD backward vs NumPy forward + adjoint, same lanes.
-    settings = gd.GDSettings(n_rays=args.rays, bins_per_ping=args.bins)
-    speeds = measurements.sound_speeds(ds)
-    tgt = gd.targets(ds, settings)
-    first, last = gd.reachable_bins(ds, grid, speeds)
-    sampler = gd._Sampler(tgt, first, last, settings, np.random.default_rng(1))
-    pings, bins, roll = sampler.draw()
-    geo = F.ping_geometry(ds, pings, bins, speeds)
-    samples = F.EllipsoidSamples(geo, F.cone_directions(args.rays, 30.0))
-    vf = F.VoxelField(grid)
-    m = vf.m
-    x = (rng.standard_normal(grid.size) + 1j * rng.standard_normal(grid.size)).astype(np.complex64)
-    target = tgt[pings[:, None], bins]
-
-    def jit_step():
-        re, im = m.Float(x.real.copy()), m.Float(x.imag.copy())
-        dr.enable_grad(re, im)
-        y_re, y_im = F.render(vf.field(re, im), samples)
-        t = target.ravel()
-        loss = dr.sum(dr.square(y_re - m.Float(t.real.copy())) + dr.square(y_im - m.Float(t.imag.copy())))
-        dr.backward(loss)
-        return dr.grad(re), dr.grad(im)
-
-    jit_step()
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    g_re, _ = jit_step()
-    dr.eval(g_re)
-    dr.sync_thread()
-    t_jit = time.perf_counter() - t0
-    points = np.array(samples.points).T.astype(np.float64)
-    valid = np.array(samples.valid)
-    t0 = time.perf_counter()
-    numpy_forward_adjoint(points, valid, samples.shape, grid, x.reshape(grid.shape), target)
-    t_np = time.perf_counter() - t0
-
-    lanes = int(np.prod(samples.shape))
-    print(f"grid {grid.shape}, {settings.pings_per_iteration} pings x {args.bins} bins x {args.rays} rays "
-          f"= {lanes / 1e6:.1f} M samples per iteration")
-    print(f"{'run':<16}{'s/iteration':>13}{'peak RSS MB':>13}")
-    for label, per_it, rss in rows:
-        print(f"{label:<16}{per_it:>13.3f}{rss:>13.0f}")
-    print(f"linear data gradient: Dr.Jit {t_jit:.3f} s, NumPy {t_np:.3f} s, ratio {t_np / t_jit:.1f}x")
+    if args.one:
+        one(args.one[0], args.one[1], args.iterations, args.shape, args.profile)
+        return 0
+    from sonarsim import runtime
+    print(f"variant {runtime.requested_variant()}; grid {tuple(args.shape)}; full model "
+          f"(Lambertian, occlusion, sparsity + smoothness + phase priors); "
+          f"median of iterations 3-{args.iterations}")
+    print(f"{'size':<11}{'threads':>8}{'samples/it':>12}{'s/iteration':>13}{'peak RSS MB':>13}"
+          f"{'1-ping forward: Dr.Jit s':>26}{'NumPy s':>9}{'ratio':>7}{'max rel diff':>14}")
+    for size in args.sizes.split(","):
+        for threads in args.threads.split(","):
+            cmd = [sys.executable, os.path.abspath(__file__), "--one", size, threads,
+                   "--iterations", str(args.iterations), "--shape", *map(str, args.shape)]
+            if args.profile:
+                cmd.append("--profile")
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+            if proc.returncode or not lines:
+                print(f"{size:<11}{threads:>8}  failed: {proc.stderr.strip().splitlines()[-1:]}")
+                continue
+            r = json.loads(lines[-1][7:])
+            fwd = ""
+            if "forward_jit_s" in r:
+                fwd = (f"{r['forward_jit_s']:>26.4f}{r['forward_numpy_s']:>9.2f}"
+                       f"{r['forward_numpy_s'] / r['forward_jit_s']:>6.0f}x{r['forward_diff']:>14.1e}")
+            print(f"{size:<11}{threads:>8}{r['samples']:>12}{r['s_per_iteration']:>13.3f}"
+                  f"{r['peak_rss_mb']:>13.0f}{fwd}", flush=True)
+            for name, sec, kern, n, comp in r.get("profile", []):
+                print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
+                      f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s")
     return 0
 
 
