@@ -1,52 +1,97 @@
-"""Neural backprojection and gradient descent cost per iteration: seconds per optimiser step
-and peak memory for ``--preset cpu`` and ``--preset reference`` (a few steps only).
+"""Neural-backprojection (hash grid + MLP) iteration cost beside gradient descent on voxels:
+seconds per optimiser step and peak memory for ``--preset cpu`` and ``--preset reference``,
+on one thread (the deterministic default) and on all threads (``--no-deterministic``).
 
 Usage: .venv/bin/python benchmarks/bench_nbp.py [--iterations N] [--presets cpu,reference]
+                                                [--threads 1,all] [--profile] [--no-gd]
 
 Scene: 20 synthetic point scatterers in the AirSAS box, a 2-height scan of 360 pings, the
 125×125×94 grid of the simulated Table-2 scenes. Full forward model (Lambertian normals,
-occlusion). The first two steps (kernel compilation) are excluded from the median. The
-machine is shared: numbers are noisy.
+occlusion), no priors, cold start (no warm start: its cost is once per run). Each
+configuration runs in its own process (peak RSS is per configuration); the first two steps
+(kernel compilation) are excluded from the median. ``--profile`` adds where a step's time
+goes (:class:`recon.solver.PhaseTimer`). ``SONARSIM_VARIANT=cuda_ad_mono`` runs it on a GPU.
+No NumPy counterpart: a NumPy hash-grid encoding identical to ``drjit.nn``'s is not cheap
+(benchmarks/bench_gd.py compares the voxel forward model with NumPy). The machine is shared:
+numbers are noisy.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
+import subprocess
+import sys
 import time
 
 import numpy as np
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--iterations", type=int, default=5)
-    ap.add_argument("--presets", default="cpu,reference")
-    ap.add_argument("--shape", type=int, nargs=3, default=(125, 125, 94))
-    args = ap.parse_args(argv)
-    from recon import gradient_descent, nbp, synthetic
+def one(method, preset, threads, iterations, shape, profile):
+    from recon import solver, synthetic
     from recon.grid import Grid
     from sonarsim import geometry
     box = geometry.AIRSAS_REAL_BOX
     pts = np.random.default_rng(0).uniform(box.lo, box.hi, (20, 3))
     ds = synthetic.point_dataset(pts, n_pings=180, heights=(0.05, 0.15),
                                  scene_box=np.stack([box.lo, box.hi], 1))
-    grid = Grid.from_box(box, tuple(args.shape))
-    print(f"grid {grid.shape}; {ds.n_pings} pings; {args.iterations} steps per run")
-    print(f"{'method':<6}{'preset':<11}{'points/step':>12}{'s/step':>9}{'peak RSS MB':>13}")
+    grid = Grid.from_box(box, tuple(shape))
+    kw = dict(init="random", warm_start_iterations=0)
+    if method == "gd":
+        kw.update(lr_units="absolute", lr=1e-3)
+    stamps = []
+    timer = solver.PhaseTimer(skip=2) if profile else None
+    solver.solve(ds, grid, network=(method == "nbp"), method=method, preset=preset,
+                 iterations=iterations, progress=False, deterministic=(threads == "1"),
+                 timer=timer, callback=lambda i, r: stamps.append(time.perf_counter()), **kw)
+    s = solver.settings_for(preset, network=(method == "nbp"))
+    out = {"s_per_step": float(np.median(np.diff(stamps[1:]))) if len(stamps) > 3 else None,
+           "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+           "points": s.pings_per_iteration * s.bins_per_ping * s.n_rays}
+    if timer is not None:
+        out["profile"] = timer.rows()
+        timer.close()
+    print("RESULT " + json.dumps(out))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--iterations", type=int, default=5)
+    ap.add_argument("--presets", default="cpu,reference")
+    ap.add_argument("--threads", default="1,all", help="'1' (deterministic), 'all' or both")
+    ap.add_argument("--shape", type=int, nargs=3, default=(125, 125, 94))
+    ap.add_argument("--profile", action="store_true", help="where the time of a step goes")
+    ap.add_argument("--no-gd", action="store_true", help="only the network")
+    ap.add_argument("--one", nargs=3, metavar=("METHOD", "PRESET", "THREADS"),
+                    help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.one:
+        one(*args.one, args.iterations, args.shape, args.profile)
+        return 0
+    from sonarsim import runtime
+    print(f"variant {runtime.requested_variant()}; grid {tuple(args.shape)}; "
+          f"median of steps 3-{args.iterations}")
+    print(f"{'method':<7}{'preset':<11}{'threads':>8}{'points/step':>12}{'s/step':>9}"
+          f"{'peak RSS MB':>13}")
     for preset in args.presets.split(","):
-        for name, module in (("nbp", nbp), ("gd", gradient_descent)):
-            stamps = []
-            kw = dict(iterations=args.iterations, progress=False, preset=preset,
-                      callback=lambda i, r: stamps.append(time.perf_counter()))
-            if name == "gd":
-                kw.update(init="random", lr_units="absolute", lr=1e-3)
-            t0 = time.perf_counter()
-            module.solve(ds, grid, **kw)
-            per = np.median(np.diff(stamps[1:])) if len(stamps) > 3 else time.perf_counter() - t0
-            s = module.settings_for(preset)
-            n = s.pings_per_iteration * s.bins_per_ping * s.n_rays
-            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            print(f"{name:<6}{preset:<11}{n:>12}{per:>9.2f}{rss:>13.0f}", flush=True)
+        for method in ("nbp",) if args.no_gd else ("nbp", "gd"):
+            for threads in args.threads.split(","):
+                cmd = [sys.executable, os.path.abspath(__file__), "--one", method, preset,
+                       threads, "--iterations", str(args.iterations), "--shape",
+                       *map(str, args.shape)] + (["--profile"] if args.profile else [])
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+                if proc.returncode or not lines:
+                    print(f"{method:<7}{preset:<11}{threads:>8}  failed: "
+                          f"{proc.stderr.strip().splitlines()[-1:]}", flush=True)
+                    continue
+                r = json.loads(lines[-1][7:])
+                print(f"{method:<7}{preset:<11}{threads:>8}{r['points']:>12}"
+                      f"{r['s_per_step']:>9.3f}{r['peak_rss_mb']:>13.0f}", flush=True)
+                for name, sec, kern, n, comp in r.get("profile", []):
+                    print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
+                          f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s")
     return 0
 
 
