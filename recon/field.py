@@ -155,6 +155,20 @@ class BoundNetwork:
         return m.Array3f(g)
 
     def gradient_of_magnitude(self, points):
-        grad = self.magnitude_gradient(points)
-        re, im = self(points)
+        """(re, im, ∇ₓ|σ|) from *one* evaluation of the network: the points are a
+        grad-enabled leaf, ∇ₓ|σ| comes from a reverse pass to the points alone
+        (``dr.backward_to``: the weights' gradients are left untouched, the graph kept for
+        the loss), and it is returned detached, a constant in the weight gradient as in
+        :meth:`magnitude_gradient` (which evaluates the network a second time)."""
+        import drjit as dr
+        m = self.scene.m
+        p = m.Array3f(dr.detach(points))
+        dr.enable_grad(p)
+        re, im = self.scene.evaluate(self.params, p)
+        total = dr.sum(dr.sqrt(re * re + im * im + 1e-20))
+        dr.set_grad(total, 1.0)
+        g = dr.backward_to(p, flags=dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput)
+        grad = m.Array3f(dr.detach(g))
+        dr.disable_grad(p)
+        dr.eval(grad)
         return re, im, grad
