@@ -20,11 +20,14 @@ per-ping temperatures (``sonarsim.signals.sound_speed_air``).
 Kernel (one fused kernel per voxel chunk and group of pings): each SIMD lane owns one voxel,
 loops over the pings and accumulates Re/Im in registers; the per-ping constants and the
 upsampled signals are read from compact arrays, and nothing of size voxels × pings is ever
-stored. The packet gather of the signal, not arithmetic, bounds the CPU kernel (with the
-gather replaced by arithmetic on its delay the same kernel ran 2–4× faster per CPU-second);
-lanes are ordered in 4×4×4 voxel bricks so that the 16 lanes of a vector and the next
-vectors read nearby signal samples. The lane order changes no result. Two loop forms over
-the pings (``loop``):
+stored. Per voxel-ping: two distances as ``sqrt(|v|² − 2v·t + |t|²)`` (three FMAs each,
+:func:`kernel_constants`), the fractional index, one unsigned window test, one 16-byte
+packet gather of ``(s[k], s[k+1] − s[k])`` (64-byte aligned buffer, or Dr.Jit falls back to
+four per-float gathers) and two FMAs. The packet gather bounds the CPU kernel: on AVX-512 it
+is 16 pointer extractions, 16 loads and ~20 shuffles per 16 lanes, about 60 % of the
+instructions (``docs/reconstruction.md``). Lanes are ordered in 4×4×4 voxel bricks so that
+the 16 lanes of a vector and the next vectors read nearby signal samples. The lane order
+changes no result. Two loop forms over the pings (``loop``):
 
 * ``'unrolled'`` (default on the CPU): 16 pings per launch, unrolled, their constants passed
   as kernel parameters (opaque scalars: one compiled kernel for every launch); only the
@@ -34,9 +37,9 @@ the pings (``loop``):
   three extra packet gathers per voxel-ping of the constants cost more than they save.
 
 Signal preparation (matched filter, FFT upsampling, packing) runs in NumPy on the host for
-blocks of up to 1 024 pings while the asynchronous kernels of the previous block run (the
+blocks of up to 256 pings while the asynchronous kernels of the previous block run (the
 first blocks have 32, 64, ... pings, so little preparation precedes the first launch); at
-most two blocks of signals are alive (≈ 50 MB each for 608-sample pings at R = 5).
+most two blocks of signals are alive (≈ 15 MB each for 718-sample pings at R = 5).
 """
 from __future__ import annotations
 
@@ -53,7 +56,10 @@ from .grid import Grid
 
 PINGS_PER_LAUNCH = 16          # unrolled pings per kernel (8, 16, 32 measured alike)
 LOOP_PINGS_PER_LAUNCH = 64     # pings per symbolic-loop launch on the CPU (cache-sized)
-PINGS_PER_BLOCK = 1024         # pings whose signals are prepared and uploaded together
+PINGS_PER_BLOCK = 256          # pings whose signals are prepared and uploaded together
+                               # (~15 MB at 718 samples, R = 5: below glibc's largest mmap
+                               # threshold, so the blocks' memory is reused rather than
+                               # mapped and page-faulted anew: half the preparation time)
 FIRST_BLOCK = 32               # the first block; the next ones double up to PINGS_PER_BLOCK
 MAX_VOXELS_PER_LAUNCH = 1 << 23
 BRICK = (4, 4, 4)              # lane order: voxel bricks (None = C order, the pre-brick layout)
@@ -108,19 +114,34 @@ def ping_constants(dataset, upsample: int, per_ping_sound_speed: bool = True,
     return out.astype(np.float32)
 
 
+def kernel_constants(consts: np.ndarray) -> np.ndarray:
+    """The kernel's per-ping constants [N, 16] float32 (computed in float64) from
+    :func:`ping_constants` [N, 12]: the squared distances are expanded as
+    ``|v − t|² = |v|² − 2v·t + |t|²`` with ``|v|²`` per voxel, three FMAs each instead of three
+    subtractions, a product and two FMAs (same float32 round-off class: the terms are of the
+    size of the result). Columns: −2·tx (3), |tx|², −2·rx (3), |rx|², scale, offset,
+    cos(beam/2), −tx·b, b (3), 0 (the beam test is ``v·b − tx·b ≥ cos·|v − tx|``)."""
+    c = np.asarray(consts, dtype=np.float64).reshape(-1, 12)
+    k = np.zeros((len(c), 16))
+    k[:, 0:3], k[:, 3] = -2.0 * c[:, 0:3], np.einsum("ij,ij->i", c[:, 0:3], c[:, 0:3])
+    k[:, 4:7], k[:, 7] = -2.0 * c[:, 3:6], np.einsum("ij,ij->i", c[:, 3:6], c[:, 3:6])
+    k[:, 8:11] = c[:, [6, 7, 11]]
+    k[:, 11] = -np.einsum("ij,ij->i", c[:, 0:3], c[:, 8:11])
+    k[:, 12:15] = c[:, 8:11]
+    return k.astype(np.float32)
+
+
 def _ping(m, voxels, q, masked: bool):
-    """Fractional upsampled-sample index u and beam mask of one ping at the lanes' voxels.
-    ``q``: the ping's 12 constants (see :func:`ping_constants`)."""
+    """Fractional upsampled-sample index u and beam mask of one ping at the lanes' voxels
+    ``(x, y, z, |v|²)``. ``q``: the ping's :func:`kernel_constants` (12 used, 15 masked)."""
     import drjit as dr
-    vx, vy, vz = voxels
-    dx, dy, dz = vx - q[0], vy - q[1], vz - q[2]
-    d1 = dr.sqrt(dr.fma(dx, dx, dr.fma(dy, dy, dz * dz)))
-    ex, ey, ez = vx - q[3], vy - q[4], vz - q[5]
-    d2 = dr.sqrt(dr.fma(ex, ex, dr.fma(ey, ey, ez * ez)))
-    u = dr.fma(d1 + d2, q[6], q[7])
+    vx, vy, vz, r2 = voxels
+    d1 = dr.sqrt(dr.fma(vx, q[0], dr.fma(vy, q[1], dr.fma(vz, q[2], r2 + q[3]))))
+    d2 = dr.sqrt(dr.fma(vx, q[4], dr.fma(vy, q[5], dr.fma(vz, q[6], r2 + q[7]))))
+    u = dr.fma(d1 + d2, q[8], q[9])
     mask = True
     if masked:
-        mask = dr.fma(dx, q[8], dr.fma(dy, q[9], dz * q[10])) >= q[11] * d1
+        mask = dr.fma(vx, q[12], dr.fma(vy, q[13], dr.fma(vz, q[14], q[11]))) >= q[10] * d1
     return u, mask
 
 
@@ -138,14 +159,15 @@ def _kernel_unrolled(m, voxels, acc, buf, consts, row0, n_up, interpolation: str
 def _kernel_symbolic(m, voxels, acc, buf, cbuf, p0, p1, b0, n_up, interpolation: str,
                      masked: bool):
     """Add pings p0 … p1−1 (opaque UInt32 scalars) in a ``drjit.while_loop``: constants
-    gathered from ``cbuf`` (flat [N·12]), signal of ping i at packet row (i − b0)·n_up."""
+    gathered from ``cbuf`` (flat [N·16] :func:`kernel_constants`), signal of ping i at packet
+    row (i − b0)·n_up."""
     import drjit as dr
     width = dr.width(voxels[0])
 
     def body(i, are, aim):
         q = []
-        for j in range(3 if masked else 2):
-            q.extend(dr.gather(m.Array4f, cbuf, i * 3 + j))
+        for j in range(4 if masked else 3):
+            q.extend(dr.gather(m.Array4f, cbuf, i * 4 + j))
         u, mask = _ping(m, voxels, q, masked)
         re, im = interp.tent_gather_diff_jit(m, buf, (i - b0) * n_up, u, n_up, interpolation, mask)
         return i + 1, are + re, aim + im
@@ -182,12 +204,17 @@ def brick_order(shape, brick=BRICK) -> np.ndarray:
 
 
 def _lane_voxels(m, grid: Grid, flat: np.ndarray) -> list:
-    """Dr.Jit voxel-centre coordinates (x, y, z) of the flat C-order voxel indices ``flat``."""
+    """Dr.Jit voxel-centre coordinates (x, y, z) and |v|² (evaluated) of the flat C-order
+    voxel indices ``flat``."""
+    import drjit as dr
     _, ny, nz = grid.shape
     rest, iz = np.divmod(flat, flat.dtype.type(nz))
     ix, iy = np.divmod(rest, flat.dtype.type(ny))
     del rest
-    return [m.Float(np.asarray(a, dtype=np.float32)[i]) for a, i in zip(grid.axes(), (ix, iy, iz))]
+    x, y, z = [m.Float(np.asarray(a, dtype=np.float32)[i]) for a, i in zip(grid.axes(), (ix, iy, iz))]
+    r2 = dr.fma(x, x, dr.fma(y, y, z * z))
+    dr.eval(r2)
+    return [x, y, z, r2]
 
 
 def _backend_is_cuda(m) -> bool:
@@ -232,18 +259,61 @@ def backproject(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = 
     n_pings, n_t = np.asarray(dataset.waveforms).shape
     consts = ping_constants(dataset, upsample, per_ping_sound_speed, tx_beam_mask)
 
-    def blocks():
+    def ranges():
         # Blocks of 32, 64, ... up to PINGS_PER_BLOCK pings: only the first block's preparation
-        # precedes the kernels; each next one is prepared while the previous block's run.
+        # precedes the kernels; the next ones are prepared while the previous blocks' run.
         b0, size = 0, FIRST_BLOCK
         while b0 < n_pings:
             b1 = min(b0 + size, n_pings)
-            yield upsampled_signals(dataset, np.arange(b0, b1), upsample, incoherent)
+            yield np.arange(b0, b1)
             b0, size = b1, min(2 * size, PINGS_PER_BLOCK)
 
-    return delay_and_sum(blocks(), consts, grid, n_t * upsample, interpolation=interpolation,
-                         masked=tx_beam_mask is not None, progress=progress, loop=loop,
-                         brick=brick)
+    prepare = lambda pings: upsampled_signals(dataset, pings, upsample, incoherent)  # noqa: E731
+    with _Prefetch(prepare, ranges(), _preparation_threads(jit())) as blocks:
+        return delay_and_sum(blocks, consts, grid, n_t * upsample, interpolation=interpolation,
+                             masked=tx_beam_mask is not None, progress=progress, loop=loop,
+                             brick=brick)
+
+
+def _preparation_threads(m) -> int:
+    """Threads that prepare signal blocks (NumPy/SciPy FFTs release the GIL). On the CPU the
+    kernels already use every core: one thread, which overlaps the preparation with the
+    launches that the main thread traces. With CUDA the host's cores are free: up to 8."""
+    if not _backend_is_cuda(m):
+        return 1
+    import os
+    return max(1, min(8, (os.cpu_count() or 2) - 1))
+
+
+class _Prefetch:
+    """Iterate ``fn(item)`` for the items in order, computed ahead by ``threads`` worker
+    threads (at most ``threads + 1`` results pending)."""
+
+    def __init__(self, fn, items, threads: int):
+        from concurrent.futures import ThreadPoolExecutor
+        self.fn, self.items, self.depth = fn, iter(items), threads + 1
+        self.pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bp-prepare")
+        self.pending = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for f in self.pending:
+            f.cancel()
+        self.pool.shutdown(wait=True)
+        self.pending = []
+
+    def __iter__(self):
+        while True:
+            while len(self.pending) < self.depth:
+                item = next(self.items, None)
+                if item is None:
+                    break
+                self.pending.append(self.pool.submit(self.fn, item))
+            if not self.pending:
+                return
+            yield self.pending.pop(0).result()
 
 
 def interpolation_buffer(s: np.ndarray) -> np.ndarray:
@@ -279,7 +349,8 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
         raise InputError(f"loop: choose one of {', '.join(LOOPS)}, got {loop!r}")
     if loop == "auto":
         loop = "symbolic" if _backend_is_cuda(m) else "unrolled"
-    consts = np.ascontiguousarray(consts, dtype=np.float32)
+    consts = kernel_constants(consts)
+    n_used = 15 if masked else 12
     n_pings = len(consts)
     order = brick_order(grid.shape, brick)
     chunks = []
@@ -294,8 +365,8 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
     else:
         per_launch = PINGS_PER_LAUNCH
         # A padding ping never contributes: scale 0, offset -1 -> u = -1 is outside the window.
-        pad_ping = np.zeros(12, dtype=np.float32)
-        pad_ping[7], pad_ping[11] = -1.0, -2.0
+        pad_ping = np.zeros(16, dtype=np.float32)
+        pad_ping[9], pad_ping[10] = -1.0, -2.0
     bar = progress_bar(n_pings, progress, unit="ping", desc="backprojection", leave=False)
     b0 = 0
     for host in blocks:
@@ -318,7 +389,7 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
                 c = consts[b0 + l0:b0 + l1]
                 if len(c) < per_launch:
                     c = np.concatenate([c, np.tile(pad_ping, (per_launch - len(c), 1))])
-                q = [[dr.opaque(m.Float, float(v)) for v in row] for row in c]
+                q = [[dr.opaque(m.Float, float(v)) for v in row[:n_used]] for row in c]
                 args = (q, dr.opaque(m.UInt32, l0) * n_up_o, n_up_o)
             for voxels, acc in chunks:
                 if loop == "symbolic":
