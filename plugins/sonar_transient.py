@@ -65,6 +65,12 @@ DEFAULT_VERTEX_SPREAD = 0.0        # m: disk radius over which bounce >= 2 verti
 DEFAULT_GUIDE_FRACTION = 0.5      # share of continuations aimed at the objects' bounding sphere
 DEFAULT_PATH_SAMPLES = 16          # path-length quantiles splatted per facet
 DEFAULT_SPECKLE_SPACING = 3e-3     # m: scatterer cells of the 'coherent' amplitude
+# TX-cone tracer: lanes per launch (its lane order takes about 8 bytes per lane), the
+# fewest paths per pose for which sorting them by TX direction pays, and the paths per
+# direction cell of that sort (see SonarTransientIntegrator._coherent_order).
+_TRACE_BATCH = 2**24
+_ORDER_MIN_PATHS = 64
+_ORDER_PER_CELL = 16.0
 
 
 def piston_ka(beamwidth_deg: float) -> float:
@@ -585,16 +591,82 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
 
     # ------------------------------------------------------------------ TX-cone paths
     def _trace(self, scene, hists, ctx, paths_per_pose, ray_stats=None):
+        """The TX-cone paths of every pose, in launches of at most _TRACE_BATCH lanes:
+        whole poses, or (beyond _TRACE_BATCH paths per pose) part of one pose's paths."""
+        n_poses, P = ctx["n_poses"], paths_per_pose
+        if P <= _TRACE_BATCH:
+            per = max(1, _TRACE_BATCH // P)
+            batches = [(p0, min(per, n_poses - p0), 0, P) for p0 in range(0, n_poses, per)]
+        else:
+            batches = [(p0, 1, a, min(_TRACE_BATCH, P - a))
+                       for p0 in range(n_poses) for a in range(0, P, _TRACE_BATCH)]
+        for pose0, n_batch_poses, path0, n_paths in batches:
+            batch = {"pose0": dr.opaque(mi.UInt32, pose0), "path0": dr.opaque(mi.UInt32, path0),
+                     "n_paths": dr.opaque(mi.UInt32, n_paths)}
+            order = self._coherent_order(ctx, batch, n_batch_poses, n_paths, P)
+            self._trace_lanes(scene, hists, ctx, paths_per_pose, batch, n_batch_poses * n_paths,
+                              order, ray_stats)
+
+    @staticmethod
+    def _path_rng(ctx, pose, path):
+        """The PCG32 stream of path ``path`` of pose ``pose`` (index in this call), seeded
+        by a hash of (seed, global pose index, path): independent of chunking and order."""
+        stream_key = mi.sample_tea_32(ctx["seed"], pose + ctx["pose_offset"])[0]
+        return mi.PCG32(1, mi.sample_tea_64(stream_key, path), mi.sample_tea_64(path, stream_key))
+
+    @staticmethod
+    def _direction_cell(ctx, batch, index, level):
+        """(pose, path, Morton cell of the first TX sample square at ``level``) of lane
+        ``index`` of a batch: the cell's 4^level squares tile [0, 1)² (the beam warps
+        map nearby points of the square to nearby directions)."""
+        UInt32 = mi.UInt32
+        pose = batch["pose0"] + index // batch["n_paths"]
+        path = batch["path0"] + index % batch["n_paths"]
+        rng = SonarTransientIntegrator._path_rng(ctx, pose, path)
+        rng.next_float32()                                   # u_pick
+        side = mi.Float(UInt32(1) << level)
+        x = dr.minimum(UInt32(rng.next_float32() * side), (UInt32(1) << level) - 1)
+        y = dr.minimum(UInt32(rng.next_float32() * side), (UInt32(1) << level) - 1)
+        return pose, path, _interleave(x) | (_interleave(y) << 1)
+
+    def _coherent_order(self, ctx, batch, n_batch_poses, n_paths, P):
+        """The order in which a batch's lanes are traced: UInt32 [n_batch_poses·n_paths],
+        lane i traces path order[i] (index into the batch, pose-major), or None (the
+        identity) for fewer than _ORDER_MIN_PATHS paths per pose.
+
+        Each path keeps its own random numbers (they depend on pose and path index
+        only), so results are the same in any order; the order only decides which paths
+        share a SIMD packet. Each pose's paths (of this batch) are sorted by the Morton
+        cell of their first TX sample (4^L cells, about 16 paths per cell, L <= 8),
+        stably (by index within a cell): neighbouring lanes then leave the TX in nearby
+        directions, hit nearby points and send nearby shadow rays, so Embree's 16-ray
+        packets stay coherent (docs/transient_rendering.md, "Performance design"). The
+        sort is Dr.Jit's per-block stable counting sort (``drjit.detail.block_mkperm``,
+        on which ``drjit.argsort`` is built; deterministic, a few ns per lane); with a
+        Dr.Jit that lacks it, lanes stay in index order.
+        """
+        mkperm = getattr(getattr(dr, "detail", None), "block_mkperm", None)
+        if P < _ORDER_MIN_PATHS or mkperm is None:
+            return None
+        level = max(0, min(8, int(math.log(n_paths / _ORDER_PER_CELL, 4.0))))
+        index = dr.arange(mi.UInt32, n_batch_poses * n_paths)
+        cell = self._direction_cell(ctx, batch, index, dr.opaque(mi.UInt32, level))[2]
+        dr.eval(cell)
+        order = mkperm(cell, n_paths, 4 ** level)     # blocks: the poses of the batch
+        dr.eval(order)
+        return order
+
+    def _trace_lanes(self, scene, hists, ctx, paths_per_pose, batch, n_lanes, order,
+                     ray_stats=None):
+        """Trace the ``n_lanes`` paths of one batch, lane i taking batch path ``order[i]``
+        (pose-major index into the batch; None: lane i takes path i)."""
         UInt32, Float = mi.UInt32, mi.Float
-        n_poses = ctx["n_poses"]
-        n_paths = UInt32(dr.opaque(UInt32, paths_per_pose))
-        lane = dr.arange(UInt32, n_poses * paths_per_pose)
-        pose = lane // n_paths           # lanes are pose-major: coherent rays per pose
-        path = lane - pose * n_paths
-        pose_global = pose + ctx["pose_offset"]
-        stream_key = mi.sample_tea_32(ctx["seed"], pose_global)[0]
-        rng = mi.PCG32(1, mi.sample_tea_64(stream_key, path),
-                       mi.sample_tea_64(path, stream_key))
+        index = dr.arange(UInt32, n_lanes)
+        if order is not None:
+            index = dr.gather(UInt32, order, index)
+        pose = batch["pose0"] + index // batch["n_paths"]
+        path = batch["path0"] + index % batch["n_paths"]
+        rng = self._path_rng(ctx, pose, path)
         # Half h = paths of parity h; weights make the full estimate the mean of the halves.
         half = path & 1
         n0, n1 = (paths_per_pose + 1) // 2, paths_per_pose // 2
@@ -625,7 +697,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         length = Float(0.0)
         phase = Float(0.0)
         prev_p = p_tx
-        active = dr.full(mi.Bool, True, n_poses * paths_per_pose)
+        active = dr.full(mi.Bool, True, n_lanes)
 
         # Position, normals, UV (for textured albedo); no partial derivatives.
         ray_flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
@@ -843,6 +915,14 @@ def _parametric_points(item, k, u):
     area = inv_cells / ps.pdf                 # cell measure / area density of the map
     phase = dr.gather(mi.Float, phases, k) if has_phase else mi.Float(0.0)
     return ps.p, ps.n, ps.n, mi.Float(rho), area, phase, None
+
+
+def _interleave(x):
+    """The bits of UInt32 ``x`` < 2^16 spread to the even bit positions (Morton code)."""
+    x = (x | (x << 8)) & 0x00FF00FF
+    x = (x | (x << 4)) & 0x0F0F0F0F
+    x = (x | (x << 2)) & 0x33333333
+    return (x | (x << 1)) & 0x55555555
 
 
 mi.register_integrator(PLUGIN_NAME, lambda props: SonarTransientIntegrator(props))
