@@ -7,12 +7,12 @@ from . import _common
 
 HELP = "Backproject a sonar dataset onto a voxel grid (delay-and-sum of the matched-filtered signal)."
 
-# Peak bytes of a run (see memory_estimate): per voxel, the Dr.Jit coordinates and
-# accumulators (5 float32), the real/imaginary results, their complex128 sum and the
+# Peak bytes of a run (see memory_estimate): per voxel, the Dr.Jit coordinates, |v|² and
+# accumulators (6 float32), the real/imaginary results, their complex128 sum and the
 # complex64 volume; per upsampled sample of a ping block, the upsampled complex128 signal and
 # its spectrum, the complex64 copy, the 4-float interpolation buffer and its Dr.Jit copy
-# (two blocks alive at a time).
-BYTES_PER_VOXEL = 20 + 8 + 16 + 8
+# (on the CPU up to four blocks are alive: two prepared ahead, the running one, the last).
+BYTES_PER_VOXEL = 24 + 8 + 16 + 8
 BYTES_PER_UPSAMPLED_SAMPLE = 16 + 16 + 8 + 16 + 2 * 16
 
 
@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def memory_estimate(n_pings: int, n_samples: int, grid, upsample: int) -> tuple[int, str]:
     """(peak bytes, how they are made up) of backprojecting n_pings x n_samples onto grid."""
     from .. import backprojection
-    block = min(n_pings, getattr(backprojection, "PINGS_PER_BLOCK", 1024))
+    block = min(n_pings, 4 * getattr(backprojection, "PINGS_PER_BLOCK", 256))
     nx, ny, nz = grid.shape
     voxels = nx * ny * nz
     per_block = block * n_samples * upsample * BYTES_PER_UPSAMPLED_SAMPLE
