@@ -18,7 +18,21 @@ Run:  .venv/bin/python benchmarks/bench_render.py [--poses 2000] [--paths 10000]
 to compare the bounce-1 surface estimator (default) with the TX-cone tracer: per-pose wall
 and CPU time, facets/s or paths/s, and the Monte-Carlo SNR after matched filtering
 (lfm-20k pulse) measured from two half-estimates, 10·log10((E_total − E_mc)/E_mc) with
-E_mc = Σ|MF((h₀ − h₁)/2)|² — for all bounces and for bounce 1 alone.
+E_mc = Σ|MF((h₀ − h₁)/2)|² — for all bounces and for bounce 1 alone, or
+
+      .venv/bin/python benchmarks/bench_render.py --per-path [--compare-paths 1e4,1e5,1e6]
+          [--mitransient-python /tmp/mitr/bin/python] [--rounds 3]
+
+for the TX-cone tracer's cost per path (paths/s, median of interleaved rounds), its profile
+at the largest path count (trace kernel, lane ordering, other kernels, Python/launch and
+read-back; and the same trace with the lanes in index order, i.e. without the coherent
+ordering), and, given a Python in which ``mitransient`` is importable (never a dependency
+of this project: e.g. ``python3 -m venv /tmp/mitr; /tmp/mitr/bin/pip install mitransient``),
+the same job in mitransient's ``transient_path`` integrator, side by side: the bunny
+scene, the same poses, the same path-length window, ``max_depth`` = bounces + 1 and no
+Russian roulette, a spot light at the TX (cutoff = half the TX beamwidth) and a 1×1-pixel
+perspective camera at the RX (field of view = the RX beamwidth; a square instead of a
+cone), spp = paths per pose, one ``render`` per pose (its pose update included).
 The machine may be shared: timings are noisy; CPU seconds (all threads) are printed next
 to wall seconds: CPU/2 is what an idle 2-core machine would take.
 """
@@ -180,6 +194,222 @@ def estimators(args, mi, scene, all_poses, window) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------ per-path cost
+def _median(xs):
+    return float(np.median(np.asarray(xs, float)))
+
+
+def mitransient_worker(job_file: str) -> int:
+    """Run in a Python with mitransient: render poses of the job on request (one line
+    'POSE SPP' per request on stdin; one JSON line per answer on stdout)."""
+    import json
+    import os
+
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_mono")
+    import mitransient
+    job = np.load(job_file)
+    diffuse = {"type": "diffuse", "reflectance": {"type": "spectrum", "value": 1.0}}
+
+    def look(origin, direction):
+        up = [0.0, 0.0, 1.0] if abs(direction[2]) < 0.99 * np.linalg.norm(direction) else [1.0, 0, 0]
+        return mi.ScalarTransform4f().look_at(origin=[float(v) for v in origin],
+                                              target=[float(v) for v in origin + direction],
+                                              up=up)
+
+    half_tx = float(job["tx_beamwidth"]) / 2
+    scene = mi.load_dict({
+        "type": "scene",
+        "bunny": {"type": "obj", "filename": str(job["mesh"]), "bsdf": diffuse},
+        "ground": {"type": "rectangle", "bsdf": diffuse,
+                   "to_world": mi.ScalarTransform4f().scale([0.2, 0.2, 1.0])},
+        "integrator": {"type": "transient_path", "max_depth": int(job["bounces"]) + 1,
+                       "rr_depth": int(job["bounces"]) + 100},
+        "light": {"type": "spot", "cutoff_angle": half_tx, "beam_width": half_tx,
+                  "intensity": {"type": "spectrum", "value": 1.0},
+                  "to_world": look(job["tx"][0], job["tx_dir"][0])},
+        "sensor": {"type": "perspective", "fov": float(job["rx_beamwidth"]),
+                   "to_world": look(job["rx"][0], job["rx_dir"][0]),
+                   "film": {"type": "transient_hdr_film", "width": 1, "height": 1,
+                            "temporal_bins": int(job["n_bins"]),
+                            "start_opl": float(job["path_start"]),
+                            "bin_width_opl": float(job["bin_width"]),
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 1}}})
+    params = mi.traverse(scene)
+    integrator = scene.integrator()
+    print(json.dumps({"ready": True, "version": getattr(mitransient, "__version__", "?"),
+                      "mitsuba": mi.__version__, "threads": dr.thread_count(),
+                      "pid": os.getpid()}), flush=True)
+    for line in sys.stdin:
+        i, spp = (int(v) for v in line.split())
+        t0 = time.perf_counter()
+        params["light.to_world"] = look(job["tx"][i], job["tx_dir"][i])
+        params["sensor.to_world"] = look(job["rx"][i], job["rx_dir"][i])
+        params.update()
+        _, transient = integrator.render(scene, spp=spp, seed=i)
+        energy = float(np.asarray(transient, np.float64).sum())
+        print(json.dumps({"seconds": time.perf_counter() - t0, "energy": energy}), flush=True)
+    return 0
+
+
+class _Mitransient:
+    """A mitransient worker process (see :func:`mitransient_worker`)."""
+
+    def __init__(self, python: str, poses, window, bounces: int, mesh: Path, workdir: Path):
+        import json
+        import subprocess
+        job = workdir / "mitransient_job.npz"
+        np.savez(job, tx=poses.tx, rx=poses.rx, tx_dir=poses.tx_boresight,
+                 rx_dir=poses.rx_boresight, n_bins=window.n_bins, path_start=window.path_start,
+                 bin_width=window.bin_width, bounces=bounces, mesh=str(mesh),
+                 tx_beamwidth=30.0, rx_beamwidth=30.0)
+        self.proc = subprocess.Popen([python, str(Path(__file__).resolve()),
+                                      "--mitransient-worker", str(job)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self._json = json
+        self.info = self._answer()
+
+    def _answer(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the mitransient worker stopped (see its error above)")
+        return self._json.loads(line)
+
+    def render(self, pose: int, spp: int) -> tuple[float, float]:
+        self.proc.stdin.write(f"{pose} {spp}\n")
+        self.proc.stdin.flush()
+        a = self._answer()
+        return a["seconds"], a["energy"]
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+
+
+def per_path(args, mi, scene, all_poses, window) -> int:
+    """The TX-cone tracer's cost per path at several path counts, side by side with
+    mitransient when a Python with it is given; profile at the largest count."""
+    import tempfile
+
+    import drjit as dr
+
+    from sonarsim import render
+    st = sys.modules["sonarsim.plugins.sonar_transient"]
+    counts = sorted({int(float(v)) for v in args.compare_paths.split(",")})
+    total_paths = max(counts) * 4                     # paths per measurement and method
+    integ = render.make_integrator(args.bounces, bounce1="cone")
+    workdir = Path(tempfile.mkdtemp(prefix="bench_render_"))
+    mitr = None
+    if args.mitransient_python:
+        mitr = _Mitransient(args.mitransient_python, all_poses, window, args.bounces,
+                            args.mesh, workdir)
+        print(f"mitransient {mitr.info['version']} (mitsuba {mitr.info['mitsuba']}, "
+              f"{mitr.info['threads']} threads) in {args.mitransient_python}")
+
+    def ours(p, paths, offset=0):
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        h = integ.render_transients(scene, p.tx, p.rx, p.tx_boresight, p.rx_boresight,
+                                    window.path_start, window.bin_width, window.n_bins,
+                                    paths, 0, pose_offset=offset)
+        return time.perf_counter() - t0, float(h.sum(dtype=np.float64))
+
+    print(f"\nPer-path cost, TX-cone tracer (bounce1='cone'), {args.bounces} bounces, bunny + "
+          f"ground, {window.n_bins} bins; sonarsim renders a chunk of poses per launch, "
+          f"mitransient one pose per render(); medians of {args.rounds} interleaved rounds")
+    print(f"{'paths/pose':>10} {'poses':>6} {'sonarsim paths/s':>17} {'mitransient':>12} "
+          f"{'ratio':>6} {'numpy':>10} {'ratio':>6} {'s/pose ours':>12} {'s/pose mitr':>12} "
+          f"{'energy/pose ours':>17} {'mitr':>9}")
+    rng = np.random.default_rng(0)
+    p0 = all_poses[0]                                 # compile the NumPy baseline's kernels
+    numpy_pose(mi, scene, p0.tx[0], p0.rx[0], p0.tx_boresight[0], p0.rx_boresight[0], window,
+               100, args.bounces, rng, math.radians(15.0))
+    rows = []
+    for paths in counts:
+        k = max(2, min(400, total_paths // paths))
+        pick = np.linspace(0, len(all_poses) - 1, k).round().astype(int)
+        poses = all_poses[pick]
+        ours(poses[:2], paths)                        # compile / warm up
+        if mitr:
+            mitr.render(int(pick[0]), paths)
+        t_ours, t_mitr, e_ours, e_mitr = [], [], 0.0, 0.0
+        for _ in range(args.rounds):
+            t, e_ours = ours(poses, paths)
+            t_ours.append(t)
+            if mitr:
+                answers = [mitr.render(int(i), paths) for i in pick]
+                t_mitr.append(sum(a[0] for a in answers))
+                e_mitr = sum(a[1] for a in answers)
+        rate = k * paths / _median(t_ours)
+        rate_m = k * paths / _median(t_mitr) if mitr else float("nan")
+        t0 = time.perf_counter()                      # the NumPy baseline, on one pose
+        numpy_pose(mi, scene, poses.tx[0], poses.rx[0], poses.tx_boresight[0],
+                   poses.rx_boresight[0], window, paths, args.bounces, rng,
+                   math.radians(15.0))
+        rate_np = paths / (time.perf_counter() - t0)
+        rows.append((paths, rate, rate_m))
+        print(f"{paths:>10,} {k:>6} {rate:>17.3e} {rate_m:>12.3e} {rate / rate_m:>6.2f} "
+              f"{rate_np:>10.3e} {rate / rate_np:>6.0f} {_median(t_ours) / k:>12.4f} "
+              f"{(_median(t_mitr) / k if mitr else float('nan')):>12.4f} "
+              f"{e_ours / k:>17.4e} {(e_mitr / k if mitr else float('nan')):>9.3e}", flush=True)
+    if mitr:
+        mitr.close()
+        print("energy/pose: sonarsim reports ∫ b_R L dω over its 30° RX cone (0.21 sr); "
+              "mitransient's pixel the mean radiance over its 30° square field of view "
+              "(≈ ∫ L dω / 0.27 sr): a check of magnitude, not a comparison")
+
+    # Profile at the largest count: kernels (trace, ordering, other) vs Python and read-back.
+    paths = max(counts)
+    poses = all_poses[np.linspace(0, len(all_poses) - 1, 4).round().astype(int)]
+    timer = {"order": 0.0}
+    original = st.SonarTransientIntegrator._coherent_order
+
+    def timed(self, *a, **kw):
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        out = original(self, *a, **kw)
+        dr.sync_thread()
+        timer["order"] += time.perf_counter() - t0
+        return out
+
+    st.SonarTransientIntegrator._coherent_order = timed
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    profile, plain = [], []
+    try:
+        for _ in range(args.rounds):
+            timer["order"] = 0.0
+            dr.kernel_history()
+            wall, _ = ours(poses, paths)
+            kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+            times = sorted(k["execution_time"] / 1e3 for k in kernels)
+            profile.append((wall, times[-1], sum(times), timer["order"]))
+            keep = st._ORDER_MIN_PATHS
+            st._ORDER_MIN_PATHS = 2**40                  # lanes in index order
+            try:
+                plain.append(ours(poses, paths)[0])
+            finally:
+                st._ORDER_MIN_PATHS = keep
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        st.SonarTransientIntegrator._coherent_order = original
+    wall, trace, kernels, order = (np.median([p[i] for p in profile]) for i in range(4))
+    n = len(poses) * paths
+    print(f"\nProfile: {len(poses)} poses x {paths:,} paths, {args.bounces} bounces (medians):")
+    print(f"  wall {wall:.3f} s = {n / wall:.3e} paths/s; trace kernel (one fused launch per "
+          f"batch of <= 2^24 lanes: ray casts, shading, splats) {trace:.3f} s "
+          f"({trace / wall:.0%}), lane ordering {order:.3f} s ({order / wall:.0%}), all "
+          f"kernels {kernels:.3f} s; Python, launches and read-back "
+          f"{max(0.0, wall - kernels):.3f} s ({max(0.0, wall - kernels) / wall:.0%})")
+    print(f"  lanes in index order (no coherent ordering): {_median(plain):.3f} s = "
+          f"{n / _median(plain):.3e} paths/s -> ordering gains "
+          f"{_median(plain) / wall:.2f}x")
+    print(f"peak RSS of this process: {peak_rss_gb():.2f} GB (numpy: the straightforward "
+          f"NumPy + Mitsuba implementation above, one pose; ratio = sonarsim / numpy)")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--estimators", action="store_true",
@@ -190,7 +420,17 @@ def main(argv=None) -> int:
     ap.add_argument("--bounces", type=int, default=3)
     ap.add_argument("--baseline-poses", type=int, default=3)
     ap.add_argument("--mesh", type=Path, default=MESH)
+    ap.add_argument("--per-path", action="store_true",
+                    help="cost per path of the TX-cone tracer (and mitransient's, see below)")
+    ap.add_argument("--compare-paths", default="1e4,1e5,1e6",
+                    help="paths per pose for --per-path, comma-separated")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (--per-path)")
+    ap.add_argument("--mitransient-python", default=None, metavar="PYTHON",
+                    help="a Python in which mitransient is importable: time it on the same job")
+    ap.add_argument("--mitransient-worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.mitransient_worker:
+        return mitransient_worker(args.mitransient_worker)
     if not args.mesh.is_file():
         print(f"mesh not found: {args.mesh}", file=sys.stderr)
         return 2
@@ -206,6 +446,8 @@ def main(argv=None) -> int:
     window = render.path_window(scene, all_poses, box=geometry.SIM_BOX)
     if args.estimators:
         return estimators(args, mi, scene, all_poses, window)
+    if args.per_path:
+        return per_path(args, mi, scene, all_poses, window)
     chunk = render.choose_chunk_size(args.paths, args.bounces, window.n_bins)
     n_tri = sum(s.face_count() for s in scene.shapes() if isinstance(s, mi.Mesh))
     print(f"scene: bunny {n_tri} triangles + ground; window {window.n_bins} bins of "
