@@ -13,7 +13,8 @@ trilinear gradient, occlusion s_occ 1000) and the AirSAS priors (sparsity, smoot
 phase) on from the first step. Scene: 20 synthetic point scatterers in the AirSAS box, a
 2-height scan of 360 pings. Each configuration runs in its own process (peak RSS is per
 configuration); the first two iterations (kernel compilation or cache loads) are excluded
-from the median. ``--profile`` adds where one iteration's time goes
+from the median. CPU s/it is the process's CPU time per iteration (on a shared machine the
+steadier figure for one thread). ``--profile`` adds where one iteration's time goes
 (:class:`recon.solver.PhaseTimer`). ``SONARSIM_VARIANT=cuda_ad_mono`` runs it on a GPU (the
 thread setting is then moot). The machine is shared: numbers are noisy.
 """
@@ -139,13 +140,15 @@ def one(size, threads, iterations, shape, profile):
     from recon import gradient_descent as gd
     from recon import solver
     ds, grid = scene(shape)
-    stamps = []
+    stamps, cpu = [], []
     timer = solver.PhaseTimer(skip=2) if profile else None
     solver.solve(ds, grid, network=False, method="gd", preset=size, iterations=iterations,
                  progress=False, deterministic=(threads == "1"), timer=timer,
-                 callback=lambda i, r: stamps.append(time.perf_counter()), **FULL)
+                 callback=lambda i, r: (stamps.append(time.perf_counter()),
+                                        cpu.append(time.process_time())), **FULL)
     out = {"size": size, "threads": threads,
-           "s_per_iteration": float(np.median(np.diff(stamps[1:]))) if len(stamps) > 3 else None,
+           "s_per_iteration": float(np.median(np.diff(stamps[1:]))),
+           "cpu_s_per_iteration": float(np.median(np.diff(cpu[1:]))),
            "peak_rss_mb": peak_rss_mb()}
     if timer is not None:
         out["profile"] = timer.rows()
@@ -160,7 +163,7 @@ def one(size, threads, iterations, shape, profile):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--iterations", type=int, default=7)
+    ap.add_argument("--iterations", type=int, default=8)
     ap.add_argument("--sizes", default=",".join(SIZES))
     ap.add_argument("--threads", default="1,all", help="'1' (deterministic), 'all' or both")
     ap.add_argument("--shape", type=int, nargs=3, default=(150, 150, 120))
@@ -174,7 +177,8 @@ def main(argv=None) -> int:
     print(f"variant {runtime.requested_variant()}; grid {tuple(args.shape)}; full model "
           f"(Lambertian, occlusion, sparsity + smoothness + phase priors); "
           f"median of iterations 3-{args.iterations}")
-    print(f"{'size':<11}{'threads':>8}{'samples/it':>12}{'s/iteration':>13}{'peak RSS MB':>13}"
+    print(f"{'size':<11}{'threads':>8}{'samples/it':>12}{'s/iteration':>13}{'CPU s/it':>10}"
+          f"{'peak RSS MB':>13}"
           f"{'1-ping forward: Dr.Jit s':>26}{'NumPy s':>9}{'ratio':>7}{'max rel diff':>14}")
     for size in args.sizes.split(","):
         for threads in args.threads.split(","):
@@ -193,10 +197,11 @@ def main(argv=None) -> int:
                 fwd = (f"{r['forward_jit_s']:>26.4f}{r['forward_numpy_s']:>9.2f}"
                        f"{r['forward_numpy_s'] / r['forward_jit_s']:>6.0f}x{r['forward_diff']:>14.1e}")
             print(f"{size:<11}{threads:>8}{r['samples']:>12}{r['s_per_iteration']:>13.3f}"
-                  f"{r['peak_rss_mb']:>13.0f}{fwd}", flush=True)
-            for name, sec, kern, n, comp in r.get("profile", []):
+                  f"{r['cpu_s_per_iteration']:>10.3f}{r['peak_rss_mb']:>13.0f}{fwd}", flush=True)
+            for name, sec, kern, n, comp, cpu in r.get("profile", []):
                 print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
-                      f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s")
+                      f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s"
+                      f"  CPU {cpu:>7.3f} s")
     return 0
 
 

@@ -40,13 +40,15 @@ def one(method, preset, threads, iterations, shape, profile):
     kw = dict(init="random", warm_start_iterations=0)
     if method == "gd":
         kw.update(lr_units="absolute", lr=1e-3)
-    stamps = []
+    stamps, cpu = [], []
     timer = solver.PhaseTimer(skip=2) if profile else None
     solver.solve(ds, grid, network=(method == "nbp"), method=method, preset=preset,
                  iterations=iterations, progress=False, deterministic=(threads == "1"),
-                 timer=timer, callback=lambda i, r: stamps.append(time.perf_counter()), **kw)
+                 timer=timer, callback=lambda i, r: (stamps.append(time.perf_counter()),
+                                                     cpu.append(time.process_time())), **kw)
     s = solver.settings_for(preset, network=(method == "nbp"))
-    out = {"s_per_step": float(np.median(np.diff(stamps[1:]))) if len(stamps) > 3 else None,
+    out = {"s_per_step": float(np.median(np.diff(stamps[1:]))),
+           "cpu_s_per_step": float(np.median(np.diff(cpu[1:]))),
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
            "points": s.pings_per_iteration * s.bins_per_ping * s.n_rays}
     if timer is not None:
@@ -73,7 +75,7 @@ def main(argv=None) -> int:
     print(f"variant {runtime.requested_variant()}; grid {tuple(args.shape)}; "
           f"median of steps 3-{args.iterations}")
     print(f"{'method':<7}{'preset':<11}{'threads':>8}{'points/step':>12}{'s/step':>9}"
-          f"{'peak RSS MB':>13}")
+          f"{'CPU s/step':>12}{'peak RSS MB':>13}")
     for preset in args.presets.split(","):
         for method in ("nbp",) if args.no_gd else ("nbp", "gd"):
             for threads in args.threads.split(","):
@@ -88,10 +90,12 @@ def main(argv=None) -> int:
                     continue
                 r = json.loads(lines[-1][7:])
                 print(f"{method:<7}{preset:<11}{threads:>8}{r['points']:>12}"
-                      f"{r['s_per_step']:>9.3f}{r['peak_rss_mb']:>13.0f}", flush=True)
-                for name, sec, kern, n, comp in r.get("profile", []):
+                      f"{r['s_per_step']:>9.3f}{r['cpu_s_per_step']:>12.3f}"
+                      f"{r['peak_rss_mb']:>13.0f}", flush=True)
+                for name, sec, kern, n, comp, cpu in r.get("profile", []):
                     print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
-                          f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s")
+                          f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s"
+                          f"  CPU {cpu:>7.3f} s")
     return 0
 
 

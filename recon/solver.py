@@ -467,8 +467,9 @@ class PhaseTimer:
     the in-memory kernel cache). Forcing evaluation at phase ends changes kernel fusion a
     little: the profiled iteration is slightly slower than a free-running one.
 
-    ``rows()`` → per phase (name, seconds per iteration, kernel ms per iteration, kernels
-    per iteration, compiled kernels per iteration) over the iterations after ``skip``.
+    ``rows()`` → per phase (name, wall seconds, kernel seconds, kernel launches, compiled
+    kernels, process CPU seconds — each per iteration) over the iterations after ``skip``.
+    On a shared machine the CPU seconds of a one-thread run are the steadier figure.
     """
 
     PHASES = ("sampling", "forward", "loss", "backward", "adam", "host")
@@ -476,9 +477,10 @@ class PhaseTimer:
     def __init__(self, skip: int = 2):
         import time
         import drjit as dr
-        self._clock, self.skip, self.iteration = time.perf_counter, int(skip), 0
+        self._clock, self._cpu = time.perf_counter, time.process_time
+        self.skip, self.iteration = int(skip), 0
         self.totals = {}
-        self._last = None
+        self._last = self._last_cpu = None
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()                      # drop what ran before
 
@@ -486,17 +488,18 @@ class PhaseTimer:
         import drjit as dr
         dr.eval(*(a for a in arrays if a is not None))
         dr.sync_thread()
-        now = self._clock()
+        now, cpu = self._clock(), self._cpu()
         hist = dr.kernel_history()
         if self._last is not None and phase != "setup" and self.iteration >= self.skip:
-            t = self.totals.setdefault(phase, [0.0, 0.0, 0, 0])
+            t = self.totals.setdefault(phase, [0.0, 0.0, 0, 0, 0.0])
             t[0] += now - self._last
+            t[4] += cpu - self._last_cpu
             for k in hist:
                 t[1] += float(k.get("execution_time", 0.0)) * 1e-3
                 if k["type"] == dr.KernelType.JIT:
                     t[2] += 1
                     t[3] += 0 if k.get("cache_hit") else 1
-        self._last = now
+        self._last, self._last_cpu = now, cpu
         if iteration_end:
             self.iteration += 1
 
@@ -506,8 +509,7 @@ class PhaseTimer:
 
     def rows(self):
         n = max(self.iteration - self.skip, 1)
-        return [(p, self.totals[p][0] / n, self.totals[p][1] / n, self.totals[p][2] / n,
-                 self.totals[p][3] / n) for p in self.PHASES if p in self.totals]
+        return [(p, *(v / n for v in self.totals[p])) for p in self.PHASES if p in self.totals]
 
 
 # ---------------------------------------------------------------------------------------
