@@ -15,9 +15,11 @@ path throughput starts at ``b_T/pdf``; at every vertex the path is connected to 
 a shadow ray (next-event estimation; its value is stored in the histogram of that bounce);
 the path continues by cosine-weighted sampling (throughput × ρ), its ray started a hair along
 its own direction so that it is the sampled line; path lengths are summed from the vertex
-positions (docs/transient_rendering.md). All poses of a call and all
-their paths run as one wavefront Dr.Jit kernel; every per-call scalar enters the kernel as an
-opaque value, so new poses, windows or seeds reuse the compiled kernel.
+positions (docs/transient_rendering.md). The poses of a call and all their paths run as
+wavefront Dr.Jit kernels of up to 2²⁴ lanes, each pose's paths sorted by their first TX
+direction so that neighbouring lanes trace coherent rays (a path's random numbers do not
+depend on its lane); every per-call scalar enters the kernel as an opaque value, so new
+poses, windows or seeds reuse the compiled kernel.
 
 Binning. Bin j covers round-trip path lengths [path_start + j·w, path_start + (j+1)·w).
 A contribution at path length L is split linearly (tent) between the two bins whose centres
