@@ -134,3 +134,18 @@ def test_interrupted_render_leaves_no_file(mi, sphere, tmp_path, monkeypatch):
                               bounce1="cone", chunk_size=2, box=spec.box, progress=False)
     assert out.read_bytes() == b"older"            # the old file untouched, nothing else left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.h5"]
+
+
+def test_render_command_refuses_a_chunk_beyond_the_memory_limit(tmp_path, capsys):
+    """The command checks one chunk's buffers (not the whole file) against --max-memory,
+    before rendering, in one line."""
+    from sonarsim.cli import main
+    out = tmp_path / "t.h5"
+    base = ["render", "sphere", "--poses", "cylindrical:3:1", "--paths-per-pose", "100",
+            "--bounces", "1", "--oversample", "60", "--no-progress", "--out", str(out)]
+    assert main(base + ["--max-memory", "1M"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the transient buffers of one chunk needs" in err[0], err
+    assert not out.exists()
+    assert main(base + ["--max-memory", "64M"]) == 0          # 3 poses fit in 64 MiB
+    assert Transients.read(out).n_pings == 3

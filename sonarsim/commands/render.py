@@ -47,7 +47,7 @@ def _check_resources(scene, poses, args, box) -> None:
                          f"fewer poses or bins (--path-range, --oversample)")
     chunk, need = chunk_memory(len(poses), args.paths_per_pose or 1, args.bounces,
                                window.n_bins, args.chunk_size)
-    limits.check_memory(need, "one chunk of transients",
+    limits.check_memory(need, "the transient buffers of one chunk",
                         f"{chunk} poses x {args.bounces} bounces x {window.n_bins} bins",
                         "lower --chunk-size, --bounces or the number of bins")
 
