@@ -7,10 +7,10 @@ Usage: .venv/bin/python benchmarks/bench_nbp.py [--iterations N] [--presets cpu,
 
 Scene: 20 synthetic point scatterers in the AirSAS box, a 2-height scan of 360 pings, the
 125×125×94 grid of the simulated Table-2 scenes. Full forward model (Lambertian normals,
-occlusion), no priors, cold start (no warm start: its cost is once per run). Each
-configuration runs in its own process (peak RSS is per configuration); the first two steps
-(kernel compilation) are excluded from the median. ``--profile`` adds where a step's time
-goes (:class:`recon.solver.PhaseTimer`). ``SONARSIM_VARIANT=cuda_ad_mono`` runs it on a GPU.
+occlusion s_occ 500) for both scenes, no priors, cold start (no warm start: its cost is once
+per run). Each configuration runs in its own process (peak RSS is per configuration); the
+first two steps (kernel compilation) are excluded from the median. ``--profile`` adds where a
+step's time goes (:class:`recon.solver.PhaseTimer`). ``SONARSIM_VARIANT=cuda_ad_mono`` runs it on a GPU.
 No NumPy counterpart: a NumPy hash-grid encoding identical to ``drjit.nn``'s is not cheap
 (benchmarks/bench_gd.py compares the voxel forward model with NumPy). The machine is shared:
 numbers are noisy.
@@ -37,7 +37,8 @@ def one(method, preset, threads, iterations, shape, profile):
     ds = synthetic.point_dataset(pts, n_pings=180, heights=(0.05, 0.15),
                                  scene_box=np.stack([box.lo, box.hi], 1))
     grid = Grid.from_box(box, tuple(shape))
-    kw = dict(init="random", warm_start_iterations=0)
+    # The full model for both scenes, whatever the representation's defaults.
+    kw = dict(init="random", warm_start_iterations=0, lambertian=True, occlusion_scale=500.0)
     if method == "gd":
         kw.update(lr_units="absolute", lr=1e-3)
     stamps, cpu = [], []
