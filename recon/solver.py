@@ -68,7 +68,7 @@ class SolverSettings:
     scale_factor: float = 10.0
     data: str = "auto"
     incoherent: bool = False
-    lambertian: bool = True
+    lambertian: bool = False       # voxels: off (measured, docs/reconstruction.md); network: on
     occlusion_scale: float = 500.0
     sparsity: float = 0.0
     smoothness: float = 0.0
@@ -171,7 +171,7 @@ HELP = {
 # absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
-                        warm_start_iterations=300, pings_per_chunk=1)
+                        warm_start_iterations=300, pings_per_chunk=1, lambertian=True)
 
 # Named sets. 'cpu'/'reference': sampling and network sizes; 'sim'/'airsas': the reference's
 # per-scene priors (scripts of the paper's code, §4.8 of the method description).

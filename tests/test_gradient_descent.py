@@ -5,7 +5,7 @@ import pytest
 from recon import backprojection as bp
 from recon import forward as F
 from recon import gradient_descent as gd
-from recon import measurements, synthetic
+from recon import measurements, nbp, synthetic
 from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
@@ -157,7 +157,8 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     assert (sim.lambertian, sim.occlusion_scale, sim.sparsity, sim.init) == (True, 500.0, 1.0, "random")
     d = gd.GDSettings()
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units) == (
-        True, 500.0, 0.0, "bp", "relative")
+        False, 500.0, 0.0, "bp", "relative")
+    assert nbp.settings_for(None).lambertian      # the network keeps the Lambertian model
     with pytest.raises(InputError):
         gd.settings_for("nope")
     with pytest.raises(InputError):
