@@ -90,6 +90,8 @@ class Settings:
     image size for both protocols' image metrics (None = each protocol's own: 256 / 512).
     ``sweep_methods``: methods of the SNR-sweep and bandwidth rows (None = all).
     ``threshold_sweep``: also report each metric at its best τ (0.05 … 0.95).
+    ``deconvolution``: how the GD and NBP cells' data are pulse-deconvolved ('wiener': seconds;
+    'inr': the paper's neural deconvolution, about 0.1 s per ping on 2 CPU cores).
     """
     angle_step: int
     height_step: int
@@ -102,6 +104,7 @@ class Settings:
     view_resolution: int | None = None
     sweep_methods: tuple[str, ...] | None = None
     threshold_sweep: bool = True
+    deconvolution: str = "wiener"     # 'wiener' or 'inr' (recon.deconvolution) for GD and NBP
 
     @property
     def n_poses(self) -> int:
@@ -117,8 +120,8 @@ class Settings:
 
 
 SIZES = {
-    "default": Settings(angle_step=2, height_step=2, paths_per_pose=None, shape=(125, 125, 94),
-                        gd_iterations=600, nbp_iterations=600),
+    "default": Settings(angle_step=1, height_step=1, paths_per_pose=None, shape=(125, 125, 94),
+                        gd_iterations=1000, nbp_iterations=1000),
     "quick": Settings(angle_step=10, height_step=10, paths_per_pose=300, shape=(25, 25, 19),
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
                       view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False),
@@ -127,20 +130,25 @@ SIZES = {
 
 @dataclass(frozen=True)
 class Method:
-    """A reconstructor: ``<module>.solve(dataset, grid, progress=False, **options(settings))``."""
+    """A reconstructor: ``<module>.solve(dataset, grid, progress=False, **options(settings))``.
+
+    ``deconvolved``: the method fits the pulse-deconvolved dataset (the paper's pipeline:
+    deconvolve, then NBP; its GD baseline is NBP without the network, on the same data),
+    made once per dataset with ``Settings.deconvolution`` (:func:`ensure_deconvolved`)."""
     key: str
     label: str                       # the reference's row name (REFERENCE)
     module: str
     options: Callable[[Settings], dict] = field(default=lambda s: {})
+    deconvolved: bool = False
 
 
 METHODS = (
     Method("bp", "Backprojection", "recon.backprojection"),
     Method("gd", "Gradient Descent", "recon.gradient_descent",
-           lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"]}),
+           lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"]}, True),
     Method("pfa", "PFA", "recon.pfa"),
     Method("nbp", "Neural BP (Ours)", "recon.nbp",
-           lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"]}),
+           lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"]}, True),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
 
@@ -263,6 +271,17 @@ def ensure_dataset(cell: Cell, settings: Settings, out: Path, source: str = "aut
     return path, notes, src
 
 
+def ensure_deconvolved(data: Path, settings: Settings) -> Path:
+    """The pulse-deconvolved dataset of ``data`` (``recon deconvolve`` with
+    ``settings.deconvolution``), made once beside it and reused."""
+    from recon.deconvolution import deconvolve
+    from sonarsim.dataset import SonarDataset
+    path = data.with_name(f"{data.stem}_pd-{settings.deconvolution}.h5")
+    if not path.is_file():     # written atomically: an existing file is complete
+        deconvolve(SonarDataset.read(data), settings.deconvolution, progress=False).write(path)
+    return path
+
+
 def evaluate_both(volume_path: Path, gt, settings: Settings) -> dict:
     """{protocol: metrics} of one volume (``recon evaluate``'s evaluate_file).
 
@@ -301,7 +320,8 @@ def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: S
     data, notes, src = ensure_dataset(cell, settings, out, source)
     volume_path = out / "volumes" / f"{cell.name}_{digest}.h5"
     volume_path.parent.mkdir(parents=True, exist_ok=True)
-    ds = SonarDataset.read(data)
+    fitted = ensure_deconvolved(data, settings) if m.deconvolved else data
+    ds = SonarDataset.read(fitted)
     elapsed = None
     if volume_path.is_file():
         vol = Volume.read(volume_path)
@@ -318,7 +338,7 @@ def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: S
     t0 = time.perf_counter()
     result = {"cell": cell.name, "method": method, "label": m.label, "shape": shape,
               "snr_db": float(snr_db), "bandwidth": bandwidth, "settings_digest": digest,
-              "scene_source": src, "dataset": str(data), "volume": str(volume_path),
+              "scene_source": src, "dataset": str(data), "fitted": str(fitted), "volume": str(volume_path),
               "time_s": elapsed, "measured_snr_db": ds.meta.get("effective_snr_db", ds.snr_db),
               "mc_snr_db": ds.meta.get("mc_snr_db"), "n_pings": int(ds.n_pings),
               "notes": notes, **evaluate_both(volume_path, gt, settings)}
@@ -524,6 +544,8 @@ def parse_args(argv):
     ap.add_argument("--sweep-methods", help="comma list: methods of the SNR/bandwidth rows")
     ap.add_argument("--no-threshold-sweep", action="store_true",
                     help="metrics at τ only (no best-τ sweep of the exact protocol)")
+    ap.add_argument("--deconvolution", choices=("wiener", "inr"),
+                    help="pulse deconvolution of the GD and NBP cells' data (default wiener)")
     ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="compute the cells as jobs on this Dask scheduler ('local': a "
                          "LocalCluster; default: one after the other in this process); "
@@ -535,7 +557,8 @@ def settings_from(args) -> Settings:
     settings = SIZES["quick" if args.quick else "default"]
     overrides = {k: getattr(args, k) for k in ("angle_step", "height_step", "paths_per_pose",
                                                "gd_iterations", "nbp_iterations", "samples",
-                                               "volume_samples", "view_resolution")
+                                               "volume_samples", "view_resolution",
+                                               "deconvolution")
                  if getattr(args, k) is not None}
     if args.sweep_methods:
         overrides["sweep_methods"] = tuple(m for m in args.sweep_methods.split(",") if m)
