@@ -237,11 +237,12 @@ def main(argv=None) -> int:
     except ImportError:
         print("PyTorch: not importable, skipped")
     else:
-        tsub = ds.select(np.arange(args.torch_pings))
+        n_torch = min(args.torch_pings, ds.n_pings)
+        tsub = ds.select(np.arange(n_torch))
         torch_delay_and_sum(tsub, g, 5)
         _, wall, cpu = timed(lambda: torch_delay_and_sum(tsub, g, 5), sync=False)
-        row("PyTorch delay-and-sum (extrap.)", wall * args.pings / args.torch_pings,
-            cpu * args.pings / args.torch_pings)
+        row("PyTorch delay-and-sum (extrap.)", wall * args.pings / n_torch,
+            cpu * args.pings / n_torch)
 
     if args.full:
         big = dataset(43200)
