@@ -76,7 +76,16 @@ def test_ad_normal_matches_finite_differences(grid):
     assert np.median(err) < 1e-3 and np.mean(err < 1e-2) > 0.8
 
 
+def _skip_on_gpu():
+    """Bit-identity holds on the CPU only: CUDA's float scatter-adds are atomics in hardware
+    order (docs/reconstruction.md, Reproducibility)."""
+    from sonarsim import runtime
+    if runtime.requested_variant().startswith("cuda"):
+        pytest.skip("bit-identical reruns are a CPU (LLVM) guarantee")
+
+
 def test_checkpoint_resume_equals_uninterrupted_run(point_ds, tmp_path):
+    _skip_on_gpu()
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
     kw = dict(TINY, lr_final=None, deterministic=True, sparsity=0.5, reg_start=3)
     ck = tmp_path / "run.npz"
@@ -103,6 +112,7 @@ def test_checkpoint_resume_equals_uninterrupted_run(point_ds, tmp_path):
 @pytest.mark.parametrize("solver", ["nbp", "gd"])
 def test_default_runs_do_not_depend_on_thread_count(point_ds, solver):
     """A seed fixes the run by default (no option needed), for the network and the voxels."""
+    _skip_on_gpu()
     import drjit as dr
     from recon import gradient_descent
     solve = nbp.solve if solver == "nbp" else gradient_descent.solve
