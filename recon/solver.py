@@ -68,14 +68,14 @@ class SolverSettings:
     scale_factor: float = 10.0
     data: str = "auto"
     incoherent: bool = False
-    lambertian: bool = False       # voxels: off (measured, docs/reconstruction.md); network: on
-    occlusion_scale: float = 500.0
-    sparsity: float = 0.0
+    lambertian: bool = False       # voxels: the linear model + sparsity (measured,
+    occlusion_scale: float = 0.0   # docs/reconstruction.md); NETWORK_DEFAULTS: the full model
+    sparsity: float = 3.0
     smoothness: float = 0.0
     phase: float = 0.0
     tv: float = 0.0
     smooth_delta: float = 1.0
-    reg_start: int = 500
+    reg_start: int = 200
     init_scale: float = 1e-8
     init: str = "bp"
     ray_jitter: bool = True
@@ -141,8 +141,9 @@ HELP = {
             "(matched-filtered analytic signal), 'deconvolved', 'analytic' (raw analytic signal)",
     "incoherent": "ablation: fit |target| with a real, non-negative scene",
     "lambertian": "Lambertian factor from the scene's normals (-∇|σ|)",
-    "occlusion_scale": "transmittance scale s_occ, 0 = no occlusion",
-    "sparsity": "sparsity prior weight λ_sp (mean|σ|)",
+    "occlusion_scale": "transmittance scale s_occ, 0 = no occlusion (per unit of σ as sparsity)",
+    "sparsity": "sparsity prior weight λ_sp (mean|σ|; σ in units of the voxel scale if lr_units "
+                "is relative)",
     "smoothness": "smoothness prior weight λ_sm",
     "phase": "phase-smoothness prior weight λ_ph",
     "tv": "total variation along rays weight",
@@ -171,7 +172,8 @@ HELP = {
 # absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
-                        warm_start_iterations=300, pings_per_chunk=1, lambertian=True)
+                        warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
+                        occlusion_scale=500.0, sparsity=0.0, reg_start=500)
 
 # Named sets. 'cpu'/'reference': sampling and network sizes; 'sim'/'airsas': the reference's
 # per-scene priors (scripts of the paper's code, §4.8 of the method description).
@@ -388,6 +390,20 @@ def loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings, 
     return terms
 
 
+def in_scene_units(settings: SolverSettings, scale: float) -> SolverSettings:
+    """The settings with every weight that multiplies |σ| (sparsity, smoothness, TV, the
+    occlusion scale) divided by the scene unit: ``scale`` (the scaled backprojection's peak)
+    when ``lr_units`` is 'relative', else 1. The priors and the transmittance then see σ in
+    units of the scene's own scale, so one set of weights means the same for voxels (σ ~ 1e-3
+    here) and the network (σ ~ 1); the phase prior is scale-free."""
+    unit = scale if settings.lr_units == "relative" and scale > 0 else 1.0
+    if unit == 1.0:
+        return settings
+    return dataclasses.replace(settings, sparsity=settings.sparsity / unit,
+                               smoothness=settings.smoothness / unit, tv=settings.tv / unit,
+                               occlusion_scale=settings.occlusion_scale / unit)
+
+
 def render_chunk(scene, params, samples, settings: SolverSettings, eps: float, field=None):
     """The forward model of one chunk (shared by both representations): (ŷ_re, ŷ_im, σ_re,
     σ_im) at every lane, through :func:`recon.forward.render`. ``field``: ``scene.bind(params)``
@@ -601,6 +617,7 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     lr1 = None if settings.lr_final is None else settings.lr_final * scale
     info = {"voxel_scale": scale, "lr_absolute": lr0, "dataset_digest": identity["dataset"],
             "target_kind": target_kind(dataset, settings)}
+    model = in_scene_units(settings, scale)
     if x0 is not None and scene.kind == "network" and (settings.init == "bp"
                                                         or settings.warm_start_iterations):
         params = scene.warm_start(params, x0, max(settings.warm_start_iterations, 1), rng)
@@ -646,12 +663,12 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
             t_re, t_im = m.Float(t.real.copy()), m.Float(t.imag.copy())
             tick("sampling", t_re, t_im, u_vec)
             field = scene.bind(opt.params)
-            y_re, y_im, s_re, s_im = render_chunk(scene, opt.params, samples, settings, eps,
+            y_re, y_im, s_re, s_im = render_chunk(scene, opt.params, samples, model, eps,
                                                   field=field)
             if taps:
                 y_re, y_im = convolve_rendered(m, y_re, y_im, pos, acf)
             tick("forward", y_re, y_im, s_re, s_im)
-            terms = loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings,
+            terms = loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, model,
                                scene.h, reg_on, u_vec, weight=len(pings[sl]) / len(pings))
             loss = sum(terms.values())
             tick("loss", loss, *terms.values())

@@ -157,8 +157,9 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     assert (sim.lambertian, sim.occlusion_scale, sim.sparsity, sim.init) == (True, 500.0, 1.0, "random")
     d = gd.GDSettings()
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units) == (
-        False, 500.0, 0.0, "bp", "relative")
-    assert nbp.settings_for(None).lambertian      # the network keeps the Lambertian model
+        False, 0.0, 3.0, "bp", "relative")
+    n = nbp.settings_for(None)                     # the network keeps the full model, no priors
+    assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (True, 500.0, 0.0, 500)
     with pytest.raises(InputError):
         gd.settings_for("nope")
     with pytest.raises(InputError):
@@ -241,3 +242,17 @@ def test_pulse_autocorrelation_model_fits_matched_filtered_data(point_ds):
         ratios[taps] = np.mean(seen[-5:]) / np.mean(seen[:3])
     # Measured: 1.10 without, 0.46 with the autocorrelation.
     assert ratios[6] < 0.6 and ratios[6] < 0.5 * ratios[0]
+
+
+def test_priors_and_occlusion_act_in_scene_units():
+    """With a relative learning rate the weights that multiply |σ| are per unit of the voxel
+    scale (so 'sparsity 1' means the same for voxels ~1e-3 and a network ~1); phase and
+    absolute-unit runs are untouched."""
+    from recon.solver import in_scene_units
+    s = gd.settings_for(None, sparsity=2.0, smoothness=4.0, tv=6.0, occlusion_scale=500.0,
+                        phase=0.1)
+    u = in_scene_units(s, 1e-3)
+    assert (u.sparsity, u.smoothness, u.tv, u.occlusion_scale, u.phase) == pytest.approx(
+        (2e3, 4e3, 6e3, 5e5, 0.1))
+    a = gd.settings_for(None, sparsity=2.0, lr_units="absolute")
+    assert in_scene_units(a, 1e-3) is a
