@@ -291,6 +291,27 @@ class INRSettings:
             raise InputError(f"inr log2_hashmap_size: at most 24, got {self.log2_hashmap_size}")
 
 
+# One line of help per INRSettings field (the `recon deconvolve` options are derived from both).
+INR_HELP = {
+    "pings_per_inr": "pings per network (one AirSAS rotation = 360)",
+    "iterations": "Adam iterations per batch of pings",
+    "lr": "initial learning rate",
+    "lr_final": "final learning rate of the exponential decay",
+    "sparsity": "weight of mean|w|",
+    "phase": "weight of the phase-smoothness term",
+    "n_levels": "hash-grid levels",
+    "features_per_level": "features per hash-grid level",
+    "log2_hashmap_size": "log2 of the entries per hash level",
+    "base_resolution": "coarsest hash-grid resolution",
+    "per_level_scale": "resolution factor between hash-grid levels",
+    "width": "MLP width",
+    "hidden_layers": "MLP hidden layers",
+    "seed": "seed of the initial weights",
+    "band_db": "fit the data only where the pulse spectrum is within this many dB of its peak "
+               "('inf' = full band)",
+}
+
+
 class _Field:
     """A 2-D hash grid + MLP w(range, ping) on drjit.nn, with its Adam optimiser."""
 

@@ -2,14 +2,18 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
+
+# Spellings of earlier releases kept beside the derived --n-levels.
+ALIASES = {"n_levels": ("--levels",)}
 
 HELP = ("Pulse-deconvolve a sonar dataset (neural INR or Wiener); writes a dataset of "
         "deconvolved analytic signals that every solver reads.")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..deconvolution import INRSettings
+    from ..deconvolution import INR_HELP, INRSettings
     d = INRSettings()
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) with real waveforms")
     parser.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
@@ -22,28 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Wiener regulariser λ in units of |P(f)|² (default: noise "
                              "variance / reflectivity variance, estimated from the data)")
     g = parser.add_argument_group("INR settings")
-    g.add_argument("--iterations", type=int, default=d.iterations,
-                   help=f"Adam iterations per batch of pings (default {d.iterations})")
-    g.add_argument("--pings-per-inr", type=int, default=d.pings_per_inr,
-                   help=f"pings per network (default {d.pings_per_inr}, one AirSAS rotation)")
-    g.add_argument("--lr", type=float, default=d.lr, help=f"initial learning rate (default {d.lr})")
-    g.add_argument("--lr-final", type=float, default=d.lr_final,
-                   help=f"final learning rate of the exponential decay (default {d.lr_final})")
-    g.add_argument("--sparsity", type=float, default=d.sparsity,
-                   help=f"weight of mean|w| (default {d.sparsity})")
-    g.add_argument("--phase", type=float, default=d.phase,
-                   help=f"weight of the phase-smoothness term (default {d.phase})")
-    g.add_argument("--levels", type=int, default=d.n_levels,
-                   help=f"hash-grid levels (default {d.n_levels})")
-    g.add_argument("--log2-hashmap-size", type=int, default=d.log2_hashmap_size,
-                   help=f"log2 of the entries per hash level (default {d.log2_hashmap_size})")
-    g.add_argument("--width", type=int, default=d.width, help=f"MLP width (default {d.width})")
-    g.add_argument("--hidden-layers", type=int, default=d.hidden_layers,
-                   help=f"MLP hidden layers (default {d.hidden_layers})")
-    g.add_argument("--seed", type=int, default=d.seed, help=f"seed (default {d.seed})")
-    g.add_argument("--band-db", type=float, default=d.band_db,
-                   help="fit the data only where the pulse spectrum is within this many dB "
-                        f"of its peak ('inf' = full band; default {d.band_db:g})")
+    for f in dataclasses.fields(INRSettings):
+        names = ("--" + f.name.replace("_", "-"),) + ALIASES.get(f.name, ())
+        kind = int if "int" in str(f.type) else float
+        g.add_argument(*names, dest=f.name, type=kind, default=getattr(d, f.name),
+                       help=f"{INR_HELP[f.name]} (default {getattr(d, f.name)})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -51,11 +38,8 @@ def run(args: argparse.Namespace) -> int:
     from sonarsim.dataset import SonarDataset
     from .. import deconvolution
     from . import _common
-    settings = deconvolution.INRSettings(
-        pings_per_inr=args.pings_per_inr, iterations=args.iterations, lr=args.lr,
-        lr_final=args.lr_final, sparsity=args.sparsity, phase=args.phase,
-        n_levels=args.levels, log2_hashmap_size=args.log2_hashmap_size, width=args.width,
-        hidden_layers=args.hidden_layers, seed=args.seed, band_db=args.band_db)
+    settings = deconvolution.INRSettings(**{f.name: getattr(args, f.name)
+                                            for f in dataclasses.fields(deconvolution.INRSettings)})
     if args.method == "inr":
         settings.validate()
     ds = SonarDataset.read(args.dataset, transients=False)
