@@ -32,7 +32,6 @@ import hashlib
 import importlib
 import json
 import math
-import os
 import resource
 import sys
 import time
