@@ -752,6 +752,16 @@ def make_scene(grid: Grid, settings: SolverSettings, network: bool):
     return VoxelScene(grid, settings, incoherent=settings.incoherent)
 
 
+def loss_by_tenth(history: list[dict], key: str) -> list[float]:
+    """Mean of ``key`` over each tenth of the run's iterations (at most 10 values, first to
+    last): the convergence record a volume carries (a single step's loss is noisy: every step
+    draws other pings, bins and rays)."""
+    values = np.array([h[key] for h in history if key in h], dtype=np.float64)
+    if values.size == 0:
+        return []
+    return [float(c.mean()) for c in np.array_split(values, min(10, values.size))]
+
+
 def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None = None,
           checkpoint=None, checkpoint_every: int = 500, resume: bool = False,
           progress: bool = True, callback=None, export_grid: Grid | None = None, timer=None,
@@ -772,6 +782,8 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     p["scene"] = scene.kind
     p["final_loss"] = float(history[-1]["loss"]) if history else float("nan")
     p["final_data_loss"] = float(history[-1]["data"]) if history else float("nan")
+    p["data_loss_by_tenth"] = loss_by_tenth(history, "data")
+    p["loss_by_tenth"] = loss_by_tenth(history, "loss")
     p["n_pings"] = int(len(dataset.waveforms))
     p.update(info)
     return Volume(volume=vol, bounds=np.asarray(out_grid.bounds, dtype=np.float64), method=method,

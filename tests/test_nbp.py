@@ -36,7 +36,8 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
                "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--rays", "200",
                "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth", "5",
                "--seed", "3", "--init", "random", "--out", str(out), "--no-progress"])
-    assert rc == 0 and "neural backprojection" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert rc == 0 and "neural backprojection" in printed
     vol = Volume.read(out)
     assert vol.method == "nbp" and vol.shape == (9, 9, 9) and np.all(np.isfinite(vol.volume))
     assert vol.params["scene"] == "network" and vol.params["mlp_width"] == 16
@@ -47,6 +48,17 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
               callback=lambda i, r: losses.append(r["data"]), **dict(TINY, lr=1e-2, lr_final=None))
     assert all(np.isfinite(losses))
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3])
+    # The volume's convergence record (mean data loss per tenth of the steps; 2 steps: 2
+    # values) is what the command reports.
+    tenths = vol.params["data_loss_by_tenth"]
+    assert len(tenths) == 2 and f"data loss {tenths[0]:.4g} -> {tenths[1]:.4g}" in printed
+
+
+def test_loss_by_tenth_is_the_mean_of_each_tenth():
+    history = [{"data": float(i), "loss": 2.0 * i} for i in range(20)]
+    assert solver.loss_by_tenth(history, "data") == [0.5 + 2 * k for k in range(10)]
+    assert solver.loss_by_tenth(history[:3], "loss") == [0.0, 2.0, 4.0]
+    assert solver.loss_by_tenth([], "data") == []
 
 
 def test_ad_normal_matches_finite_differences(grid):
