@@ -143,31 +143,35 @@ def test_default_runs_do_not_depend_on_thread_count(point_ds, solver):
 
 
 def test_point_target_position_and_residual_below_backprojection(point_ds, grid):
-    """Linear model, narrow cone: NBP's peak within one voxel of the point and its data
-    residual ‖A x − s‖/‖s‖ (fixed evaluation set) well below 1. Not yet reached: below the
-    optimally scaled BP's (0.76 here; NBP 0.85 after 80 and 0.81 after 200 steps)."""
+    """The paper's pipeline on a point target (Wiener-deconvolved data, linear model, narrow
+    cone): NBP's peak lands within one voxel of the point and its data residual ‖A x − s‖/‖s‖
+    on a fixed evaluation set falls below the optimally scaled BP's of the same data (measured
+    0.865 vs 0.945). On the matched-filtered data it does not (0.86–0.90 vs 0.76): the model
+    has no pulse, so it cannot explain the pulse's autocorrelation (docs/reconstruction.md)."""
+    from recon import deconvolution
+    ds = deconvolution.deconvolve(point_ds, "wiener", progress=False)
     kw = dict(lambertian=False, occlusion_scale=0.0, bins_per_ping=24, n_rays=600,
               beamwidth_deg=5.0, pings_per_iteration=8, pings_per_chunk=8, hash_levels=6,
-              hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3, init="random",
-              warm_start_iterations=0)
-    vol = nbp.solve(point_ds, grid, iterations=60, seed=2, progress=False, **kw)
+              hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3,
+              init="bp", warm_start_iterations=50)
+    vol = nbp.solve(ds, grid, iterations=60, seed=2, progress=False, **kw)
     peak = np.unravel_index(np.argmax(np.abs(vol.volume)), grid.shape)
     assert np.all(np.abs(grid.position_of(peak) - POINT) <= grid.spacing + 1e-12)
     settings = nbp.settings_for(None, **kw)
-    tgt = solver.targets(point_ds, settings)
-    speeds = measurements.sound_speeds(point_ds)
-    first, last = solver.reachable_bins(point_ds, grid, speeds)
-    pings = np.arange(0, point_ds.n_pings, 2)
+    tgt = solver.targets(ds, settings)
+    speeds = measurements.sound_speeds(ds)
+    first, last = solver.reachable_bins(ds, grid, speeds)
+    pings = np.arange(0, ds.n_pings, 2)
     k = int((last - first)[pings].max()) + 1
     bins = np.stack([np.minimum(first[p] + np.arange(k), tgt.shape[1] - 1) for p in pings])
-    op = F.EllipsoidOperator(grid, F.ping_geometry(point_ds, pings, bins, speeds),
+    op = F.EllipsoidOperator(grid, F.ping_geometry(ds, pings, bins, speeds),
                              n_rays=1200, beamwidth_deg=5.0)
     s = tgt[pings[:, None], bins]
-    a_bp = op.forward(bp.backproject(point_ds, grid, progress=False))
+    a_bp = op.forward(bp.backproject(ds, grid, progress=False))
     alpha = np.vdot(a_bp, s) / np.vdot(a_bp, a_bp)
     r_bp = np.linalg.norm(alpha * a_bp - s) / np.linalg.norm(s)
     r_nbp = np.linalg.norm(op.forward(vol.volume) - s) / np.linalg.norm(s)
-    assert r_nbp < 0.92 and r_bp < 0.8
+    assert r_nbp < r_bp - 0.04, (r_nbp, r_bp)
 
 
 def test_voxels_and_network_share_one_forward_model(grid):
