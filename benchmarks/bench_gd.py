@@ -21,33 +21,16 @@ thread setting is then moot). The machine is shared: numbers are noisy.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import resource
-import subprocess
 import sys
 import time
 
 import numpy as np
+from _solver_bench import emit, print_profile, run_child, scene, time_solve
 
 SIZES = ("cpu", "reference")
 FULL = dict(lambertian=True, occlusion_scale=1000.0, sparsity=10.0, smoothness=50.0, phase=0.1,
             reg_start=0, init="random", lr_units="absolute", lr=1e-3)
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def scene(shape):
-    from recon import synthetic
-    from recon.grid import Grid
-    from sonarsim import geometry
-    box = geometry.AIRSAS_REAL_BOX
-    pts = np.random.default_rng(0).uniform(box.lo, box.hi, (20, 3))
-    ds = synthetic.point_dataset(pts, n_pings=180, heights=(0.05, 0.15),
-                                 scene_box=np.stack([box.lo, box.hi], 1))
-    return ds, Grid.from_box(box, tuple(shape))
 
 
 # ---------------------------------------------------------------------------------------
@@ -138,27 +121,15 @@ def forward_vs_numpy(ds, grid, size, repeats=3):
 
 def one(size, threads, iterations, shape, profile):
     from recon import gradient_descent as gd
-    from recon import solver
     ds, grid = scene(shape)
-    stamps, cpu = [], []
-    timer = solver.PhaseTimer(skip=2) if profile else None
-    solver.solve(ds, grid, network=False, method="gd", preset=size, iterations=iterations,
-                 progress=False, deterministic=(threads == "1"), timer=timer,
-                 callback=lambda i, r: (stamps.append(time.perf_counter()),
-                                        cpu.append(time.process_time())), **FULL)
-    out = {"size": size, "threads": threads,
-           "s_per_iteration": float(np.median(np.diff(stamps[1:]))),
-           "cpu_s_per_iteration": float(np.median(np.diff(cpu[1:]))),
-           "peak_rss_mb": peak_rss_mb()}
-    if timer is not None:
-        out["profile"] = timer.rows()
-        timer.close()
+    out = time_solve(ds, grid, network=False, method="gd", preset=size, iterations=iterations,
+                     threads=threads, profile=profile, **FULL)
     s = gd.settings_for(size)
     out["samples"] = s.pings_per_iteration * s.bins_per_ping * s.n_rays
     if threads != "1":
         out["forward_jit_s"], out["forward_numpy_s"], out["forward_diff"] = \
             forward_vs_numpy(ds, grid, size)
-    print("RESULT " + json.dumps(out))
+    emit(out)
 
 
 def main(argv=None) -> int:
@@ -186,22 +157,17 @@ def main(argv=None) -> int:
                    "--iterations", str(args.iterations), "--shape", *map(str, args.shape)]
             if args.profile:
                 cmd.append("--profile")
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-            if proc.returncode or not lines:
-                print(f"{size:<11}{threads:>8}  failed: {proc.stderr.strip().splitlines()[-1:]}")
+            r, error = run_child(cmd)
+            if r is None:
+                print(f"{size:<11}{threads:>8}  failed: {error}")
                 continue
-            r = json.loads(lines[-1][7:])
             fwd = ""
             if "forward_jit_s" in r:
                 fwd = (f"{r['forward_jit_s']:>26.4f}{r['forward_numpy_s']:>9.2f}"
                        f"{r['forward_numpy_s'] / r['forward_jit_s']:>6.0f}x{r['forward_diff']:>14.1e}")
-            print(f"{size:<11}{threads:>8}{r['samples']:>12}{r['s_per_iteration']:>13.3f}"
-                  f"{r['cpu_s_per_iteration']:>10.3f}{r['peak_rss_mb']:>13.0f}{fwd}", flush=True)
-            for name, sec, kern, n, comp, cpu in r.get("profile", []):
-                print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
-                      f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s"
-                      f"  CPU {cpu:>7.3f} s")
+            print(f"{size:<11}{threads:>8}{r['samples']:>12}{r['s_per_step']:>13.3f}"
+                  f"{r['cpu_s_per_step']:>10.3f}{r['peak_rss_mb']:>13.0f}{fwd}", flush=True)
+            print_profile(r.get("profile", []))
     return 0
 
 

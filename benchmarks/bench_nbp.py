@@ -18,44 +18,24 @@ numbers are noisy.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import resource
-import subprocess
 import sys
-import time
 
-import numpy as np
+from _solver_bench import emit, print_profile, run_child, scene, time_solve
 
 
 def one(method, preset, threads, iterations, shape, profile):
-    from recon import solver, synthetic
-    from recon.grid import Grid
-    from sonarsim import geometry
-    box = geometry.AIRSAS_REAL_BOX
-    pts = np.random.default_rng(0).uniform(box.lo, box.hi, (20, 3))
-    ds = synthetic.point_dataset(pts, n_pings=180, heights=(0.05, 0.15),
-                                 scene_box=np.stack([box.lo, box.hi], 1))
-    grid = Grid.from_box(box, tuple(shape))
+    from recon import solver
+    ds, grid = scene(shape)
     # The full model for both scenes, whatever the representation's defaults.
     kw = dict(init="random", warm_start_iterations=0, lambertian=True, occlusion_scale=500.0)
     if method == "gd":
         kw.update(lr_units="absolute", lr=1e-3)
-    stamps, cpu = [], []
-    timer = solver.PhaseTimer(skip=2) if profile else None
-    solver.solve(ds, grid, network=(method == "nbp"), method=method, preset=preset,
-                 iterations=iterations, progress=False, deterministic=(threads == "1"),
-                 timer=timer, callback=lambda i, r: (stamps.append(time.perf_counter()),
-                                                     cpu.append(time.process_time())), **kw)
+    out = time_solve(ds, grid, network=(method == "nbp"), method=method, preset=preset,
+                     iterations=iterations, threads=threads, profile=profile, **kw)
     s = solver.settings_for(preset, network=(method == "nbp"))
-    out = {"s_per_step": float(np.median(np.diff(stamps[1:]))),
-           "cpu_s_per_step": float(np.median(np.diff(cpu[1:]))),
-           "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-           "points": s.pings_per_iteration * s.bins_per_ping * s.n_rays}
-    if timer is not None:
-        out["profile"] = timer.rows()
-        timer.close()
-    print("RESULT " + json.dumps(out))
+    out["points"] = s.pings_per_iteration * s.bins_per_ping * s.n_rays
+    emit(out)
 
 
 def main(argv=None) -> int:
@@ -83,20 +63,14 @@ def main(argv=None) -> int:
                 cmd = [sys.executable, os.path.abspath(__file__), "--one", method, preset,
                        threads, "--iterations", str(args.iterations), "--shape",
                        *map(str, args.shape)] + (["--profile"] if args.profile else [])
-                proc = subprocess.run(cmd, capture_output=True, text=True)
-                lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-                if proc.returncode or not lines:
-                    print(f"{method:<7}{preset:<11}{threads:>8}  failed: "
-                          f"{proc.stderr.strip().splitlines()[-1:]}", flush=True)
+                r, error = run_child(cmd)
+                if r is None:
+                    print(f"{method:<7}{preset:<11}{threads:>8}  failed: {error}", flush=True)
                     continue
-                r = json.loads(lines[-1][7:])
                 print(f"{method:<7}{preset:<11}{threads:>8}{r['points']:>12}"
                       f"{r['s_per_step']:>9.3f}{r['cpu_s_per_step']:>12.3f}"
                       f"{r['peak_rss_mb']:>13.0f}", flush=True)
-                for name, sec, kern, n, comp, cpu in r.get("profile", []):
-                    print(f"    {name:<10}{sec:>8.3f} s  kernels {kern:>7.3f} s  "
-                          f"({n:.0f} launches, {comp:.0f} compiled)  other {sec - kern:>7.3f} s"
-                          f"  CPU {cpu:>7.3f} s")
+                print_profile(r.get("profile", []))
     return 0
 
 
