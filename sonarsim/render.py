@@ -127,13 +127,32 @@ def choose_chunk_size(paths_per_pose: int, bounces: int, n_bins: int,
     return int(max(1, min(by_memory, by_lanes, by_bins)))
 
 
+def chunk_poses(n_poses: int, paths_per_pose: int, bounces: int, n_bins: int,
+                chunk_size: int | None = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
+                buffers: int = 1) -> int:
+    """Poses per kernel launch of :func:`iter_render` for ``n_poses`` poses: ``chunk_size``
+    if given (checked against the 2³² lane and bin limits), else equal chunks within
+    ``memory_budget`` (Dr.Jit's allocator then reuses the same buffers)."""
+    if chunk_size is None:
+        limit = choose_chunk_size(paths_per_pose, bounces, n_bins, memory_budget, buffers=buffers)
+        return math.ceil(n_poses / math.ceil(n_poses / limit)) if n_poses else limit
+    if int(chunk_size) != chunk_size or chunk_size < 1:
+        raise InputError(f"chunk_size must be a positive integer, got {chunk_size}")
+    if (chunk_size * paths_per_pose > _LANE_LIMIT
+            or chunk_size * bounces * n_bins * buffers > _LANE_LIMIT):
+        most = choose_chunk_size(paths_per_pose, bounces, n_bins, 2**62, buffers=buffers)
+        raise InputError(f"chunk_size {chunk_size} exceeds 2^32 lanes or bins per launch; "
+                         f"use at most {most}")
+    return int(chunk_size)
+
+
 def chunk_memory(n_poses: int, paths_per_pose: int, bounces: int, n_bins: int,
                  chunk_size: int | None = None,
                  memory_budget: int = DEFAULT_MEMORY_BUDGET) -> tuple[int, int]:
     """(poses per chunk, bytes of its histogram buffers while it is rendered) for a render
     of ``n_poses`` poses: what :func:`iter_render` holds at once, whatever ``n_poses``."""
-    chunk = chunk_size or choose_chunk_size(paths_per_pose, bounces, n_bins, memory_budget)
-    chunk = max(1, min(int(chunk), n_poses))
+    chunk = min(chunk_poses(n_poses, paths_per_pose, bounces, n_bins, chunk_size,
+                            memory_budget), max(n_poses, 1))
     return chunk, chunk * _BYTES_PER_BIN * bounces * n_bins
 
 
@@ -197,21 +216,11 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
     if window is None:
         window = path_window(scene, poses, fs=fs, oversample=oversample,
                              sound_speed=sound_speed, path_range=path_range, box=box)
-    limit = choose_chunk_size(paths_per_pose, bounces, window.n_bins, memory_budget,
-                              buffers=buffers)
     n = end - first
     if n == 0:
         return
-    if chunk_size is None:   # equal chunks: Dr.Jit's allocator then reuses the same buffers
-        chunk_size = math.ceil(n / math.ceil(n / limit))
-    elif int(chunk_size) != chunk_size or chunk_size < 1:
-        raise InputError(f"chunk_size must be a positive integer, got {chunk_size}")
-    elif (chunk_size * paths_per_pose > _LANE_LIMIT
-          or chunk_size * bounces * window.n_bins * buffers > _LANE_LIMIT):
-        most = choose_chunk_size(paths_per_pose, bounces, window.n_bins, 2**62, buffers=buffers)
-        raise InputError(f"chunk_size {chunk_size} exceeds 2^32 lanes or bins per launch; "
-                         f"use at most {most}")
-    chunk_size = int(chunk_size)
+    chunk_size = chunk_poses(n, paths_per_pose, bounces, window.n_bins, chunk_size,
+                             memory_budget, buffers)
     if halves and paths_per_pose < 2 and props.get("bounce1") == "cone":
         raise InputError("two half-estimates need paths_per_pose >= 2")
     integrator = make_integrator(bounces, beams, bounce1=bounce1, amplitude=amplitude,
