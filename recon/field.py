@@ -141,25 +141,12 @@ class BoundNetwork:
     def __call__(self, points):
         return self.scene.evaluate(self.params, points)
 
-    def magnitude_gradient(self, points):
-        """∇ₓ|σ| (Array3f, per metre) by reverse-mode AD in the points, weights detached."""
-        import drjit as dr
-        m = self.scene.m
-        p = m.Array3f(dr.detach(points))
-        dr.enable_grad(p)
-        detached = {k: dr.detach(v) for k, v in self.params.items()}
-        re, im = self.scene.evaluate(detached, p)
-        dr.backward(dr.sum(dr.sqrt(re * re + im * im + 1e-20)))
-        g = dr.grad(p)
-        dr.eval(g)
-        return m.Array3f(g)
-
     def gradient_of_magnitude(self, points):
         """(re, im, ∇ₓ|σ|) from *one* evaluation of the network: the points are a
         grad-enabled leaf, ∇ₓ|σ| comes from a reverse pass to the points alone
         (``dr.backward_to``: the weights' gradients are left untouched, the graph kept for
-        the loss), and it is returned detached, a constant in the weight gradient as in
-        :meth:`magnitude_gradient` (which evaluates the network a second time)."""
+        the loss), and it is returned detached: a constant in the weight gradient (the
+        normal has no second-order term, docs/reconstruction.md)."""
         import drjit as dr
         m = self.scene.m
         p = m.Array3f(dr.detach(points))
