@@ -1,0 +1,173 @@
+"""Settings of the solver: :class:`SolverSettings` (one field per option of ``recon gd`` /
+``recon nbp``), their help texts, the network's defaults and the named presets."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from sonarsim.errors import InputError
+
+
+@dataclass
+class SolverSettings:
+    """Settings of a neural-backprojection or gradient-descent run (see :data:`HELP`).
+
+    The defaults are gradient descent's (voxels, scaled-backprojection start, learning rate
+    relative to the voxel scale); :data:`NETWORK_DEFAULTS` overrides them for the network
+    and :data:`PRESETS` holds the named size/prior sets.
+    """
+
+    iterations: int = 1000
+    seed: int = 0
+    lr: float = 2e-2
+    lr_final: float | None = 2e-3
+    lr_units: str = "relative"
+    adam_epsilon: float = 1e-8
+    pings_per_iteration: int = 5
+    pings_per_chunk: int = 0
+    bins_per_ping: int = 110
+    n_rays: int = 2000
+    beamwidth_deg: float = 30.0
+    sampling_uniformity: float = 1.0
+    scale_factor: float = 10.0
+    data: str = "auto"
+    incoherent: bool = False
+    lambertian: bool = False       # voxels: the linear model + sparsity (measured,
+    occlusion_scale: float = 0.0   # docs/reconstruction.md); NETWORK_DEFAULTS: the full model
+    sparsity: float = 3.0
+    smoothness: float = 0.0
+    phase: float = 0.0
+    tv: float = 0.0
+    smooth_delta: float = 1.0
+    reg_start: int = 200
+    init_scale: float = 1e-8
+    init: str = "bp"
+    ray_jitter: bool = True
+    deterministic: bool = True     # a seed fixes the run (issue: reproducible by default)
+    # network (NBP only)
+    hash_levels: int = 14
+    hash_features: int = 2
+    hash_log2_size: int = 15
+    hash_base_resolution: int = 16
+    hash_level_scale: float = 1.5
+    mlp_width: int = 128
+    mlp_hidden: int = 3
+    warm_start_iterations: int = 0
+    autocorrelation_taps: int = 0
+
+    def validate(self):
+        for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays", "hash_levels",
+                     "hash_features", "hash_base_resolution", "mlp_width", "mlp_hidden"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        for name in ("pings_per_chunk", "warm_start_iterations", "reg_start", "autocorrelation_taps"):
+            if int(getattr(self, name)) < 0:
+                raise InputError(f"{name}: must be >= 0, got {getattr(self, name)}")
+        if not 8 <= self.hash_log2_size <= 26:
+            raise InputError(f"hash_log2_size: must be in [8, 26], got {self.hash_log2_size}")
+        if not self.hash_level_scale >= 1:
+            raise InputError(f"hash_level_scale: must be >= 1, got {self.hash_level_scale}")
+        if self.lr_final is not None and not self.lr_final > 0:
+            raise InputError(f"lr_final: must be positive, got {self.lr_final}")
+        for name in ("lr", "scale_factor"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
+        for name in ("sparsity", "smoothness", "phase", "tv", "occlusion_scale", "adam_epsilon",
+                     "sampling_uniformity", "init_scale", "smooth_delta"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"{name}: must be a finite number >= 0, got {v}")
+        for name, options in CHOICES.items():
+            if getattr(self, name) not in options:
+                raise InputError(f"{name}: choose one of {', '.join(options)}, got {getattr(self, name)!r}")
+        if not 0 < self.beamwidth_deg <= 360:
+            raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
+
+
+CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
+           "data": ("auto", "matched", "analytic", "deconvolved")}
+
+HELP = {
+    "iterations": "optimiser steps",
+    "seed": "random seed (pings, bins, rays, initialisation)",
+    "lr": "Adam learning rate (× the voxel scale max|scaled BP| if lr_units is relative)",
+    "lr_final": "learning rate at the last step, exponential decay from lr (none = constant)",
+    "lr_units": "'relative': lr in units of max|scaled backprojection|; 'absolute': parameter units",
+    "adam_epsilon": "Adam's epsilon",
+    "pings_per_iteration": "pings per optimiser step (reference accum_grad)",
+    "pings_per_chunk": "pings rendered per backward pass (0 = all at once); bounds memory",
+    "bins_per_ping": "range bins drawn per ping (reference max_weights)",
+    "n_rays": "rays in the TX cone per ping",
+    "beamwidth_deg": "TX cone full angle, degrees",
+    "sampling_uniformity": "bins are drawn with p ∝ |target|^u",
+    "scale_factor": "targets are normalised to max 1, then multiplied by this",
+    "data": "targets: 'auto' (deconvolved if the dataset is, else matched), 'matched' "
+            "(matched-filtered analytic signal), 'deconvolved', 'analytic' (raw analytic signal)",
+    "incoherent": "ablation: fit |target| with a real, non-negative scene",
+    "lambertian": "Lambertian factor from the scene's normals (-∇|σ|)",
+    "occlusion_scale": "transmittance scale s_occ, 0 = no occlusion (per unit of σ as sparsity)",
+    "sparsity": "sparsity prior weight λ_sp (mean|σ|; σ in units of the voxel scale if lr_units "
+                "is relative)",
+    "smoothness": "smoothness prior weight λ_sm",
+    "phase": "phase-smoothness prior weight λ_ph",
+    "tv": "total variation along rays weight",
+    "smooth_delta": "smoothness offset in units of √2 × mean voxel pitch",
+    "reg_start": "iteration from which the priors apply",
+    "init_scale": "std of the random initial voxels",
+    "init": "initial scene: 'bp' (backprojection scaled through the model) or 'random'",
+    "ray_jitter": "rotate the ray pattern randomly about the boresight per ping",
+    "deterministic": "run on one thread so float32 gradient sums have a fixed order: the same "
+                     "seed gives bit-identical results on any machine; --no-deterministic uses "
+                     "every thread (about 2x faster on 2 cores, last bits vary with threads)",
+    "hash_levels": "hash-grid levels", "hash_features": "features per level",
+    "hash_log2_size": "log2 of the hash-table entries per level",
+    "hash_base_resolution": "coarsest level resolution over the grid box",
+    "hash_level_scale": "resolution factor between levels",
+    "mlp_width": "MLP hidden width", "mlp_hidden": "MLP hidden layers",
+    "autocorrelation_taps": "model the matched filter: convolve the rendered impulse response with "
+                            "the pulse's autocorrelation over ±taps samples (0 = off; for "
+                            "matched-filtered targets)",
+    "warm_start_iterations": "NBP: first fit the network to the scaled backprojection for this many "
+                             "steps (0 = reference's cold start)",
+}
+
+# Start values of the network (overriding the voxel defaults above): the configuration
+# measured on the bunny (docs/reconstruction.md). Adam's step on the network's weights is
+# absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
+# too many for a CPU, so the network is first fitted to the scaled backprojection.
+NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
+                        warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
+                        occlusion_scale=500.0, sparsity=0.0, reg_start=500)
+
+# Named sets. 'cpu'/'reference': sampling and network sizes; 'sim'/'airsas': the reference's
+# per-scene priors (scripts of the paper's code, §4.8 of the method description).
+PRESETS = {
+    "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
+                hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
+    "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
+                      hash_log2_size=15, mlp_width=128, mlp_hidden=3),
+    "sim": dict(bins_per_ping=110, scale_factor=10.0, lambertian=True, occlusion_scale=500.0,
+                sparsity=1.0, smoothness=0.0, phase=0.0, reg_start=500, init="random"),
+    "airsas": dict(bins_per_ping=200, scale_factor=30.0, lambertian=True, occlusion_scale=1000.0,
+                   sparsity=10.0, smoothness=50.0, phase=0.1, reg_start=500, beamwidth_deg=30.0,
+                   init="random"),
+}
+
+
+def settings_for(preset: str | None = None, network: bool = False, **overrides) -> SolverSettings:
+    """Settings from the representation's defaults, a named preset (or several joined by
+    '+', e.g. 'cpu+sim'), then explicit overrides."""
+    values = dict(NETWORK_DEFAULTS) if network else {}
+    for name in (preset.split("+") if preset else []):
+        if name not in PRESETS:
+            raise InputError(f"preset: choose from {', '.join(PRESETS)}, got {name!r}")
+        values.update(PRESETS[name])
+    values.update(overrides)
+    unknown = set(values) - {f.name for f in dataclasses.fields(SolverSettings)}
+    if unknown:
+        raise InputError(f"unknown solver setting(s): {', '.join(sorted(unknown))}")
+    settings = SolverSettings(**values)
+    settings.validate()
+    return settings
