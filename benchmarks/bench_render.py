@@ -297,6 +297,7 @@ def per_path(args, mi, scene, all_poses, window) -> int:
 
     from sonarsim import render
     st = sys.modules["sonarsim.plugins.sonar_transient"]
+    tracer = sys.modules["sonarsim.plugins._cone_tracer"]
     counts = sorted({int(float(v)) for v in args.compare_paths.split(",")})
     total_paths = max(counts) * 4                     # paths per measurement and method
     integ = render.make_integrator(args.bounces, bounce1="cone")
@@ -385,12 +386,12 @@ def per_path(args, mi, scene, all_poses, window) -> int:
             kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
             times = sorted(k["execution_time"] / 1e3 for k in kernels)
             profile.append((wall, times[-1], sum(times), timer["order"]))
-            keep = st._ORDER_MIN_PATHS
-            st._ORDER_MIN_PATHS = 2**40                  # lanes in index order
+            keep = tracer._ORDER_MIN_PATHS
+            tracer._ORDER_MIN_PATHS = 2**40                  # lanes in index order
             try:
                 plain.append(ours(poses, paths)[0])
             finally:
-                st._ORDER_MIN_PATHS = keep
+                tracer._ORDER_MIN_PATHS = keep
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
         st.SonarTransientIntegrator._coherent_order = original

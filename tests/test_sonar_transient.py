@@ -572,7 +572,7 @@ def test_coherent_lane_order_changes_no_result(mi, box_on_ground, monkeypatch):
     import sys
 
     import drjit as dr
-    st = sys.modules["sonarsim.plugins.sonar_transient"]
+    st = sys.modules["sonarsim.plugins._cone_tracer"]
     scene, _, _ = box_on_ground
     poses = _poses(3)
     integ = integrator(mi, bounces=2, bounce1="cone")
