@@ -15,18 +15,63 @@ Options every subcommand gets here:
   that handles an existing output itself (``simulate`` resumes or reports a finished run)
   sets ``OUTPUT_EXISTS_OK = True``;
 * ``--threads N`` on every ``recon`` subcommand: Dr.Jit worker threads (as ``sonarsim
-  render/simulate --threads``).
+  render/simulate --threads``);
+* ``-q/--quiet`` (warnings and errors only, no progress) and ``-v/--verbose`` (also debug
+  details: the runtime set-up, the run's wall and CPU time and peak memory), before or
+  after the subcommand (:mod:`sonarsim.progress`: results on stdout, diagnostics on
+  stderr, progress as timed log lines when stderr is not a terminal).
+
+Interruptions and closed pipes end a command as Unix tools end: Ctrl-C prints one line
+``PROG: interrupted`` and exits 130; output into a pipe whose reader has gone (``sonarsim
+info D.h5 | head -1``) stops silently with exit status 141 (128 + SIGPIPE). A usage
+mistake is one line plus a pointer to ``--help`` (exit 2), not argparse's usage block.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
+import os
 import pkgutil
+import resource
 import sys
+import time
 
-from . import limits, outputs, runtime
+from . import limits, outputs, progress, runtime
 from .threads import dr_threads
 from .errors import InputError, SonarsimError
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130        # 128 + SIGINT, what a shell reports for Ctrl-C
+EXIT_BROKEN_PIPE = 141        # 128 + SIGPIPE, what a shell reports for `yes | head -1`
+
+log = logging.getLogger("sonarsim.cli")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line on stderr (exit status 2)."""
+
+    def error(self, message: str):
+        _print_err(f"{self.prog}: error: {message} (see '{self.prog} --help')")
+        self.exit(EXIT_USAGE)
+
+
+def _print_err(line: str) -> None:
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (BrokenPipeError, ValueError):
+        pass
+
+
+def _add_verbosity(parser: argparse.ArgumentParser, suppress: bool) -> None:
+    default = argparse.SUPPRESS if suppress else progress.NORMAL
+    g = parser.add_argument_group("messages") if suppress else parser
+    g.add_argument("-q", "--quiet", dest="verbosity", action="store_const",
+                   const=progress.QUIET, default=default,
+                   help="print only results, warnings and errors (no progress)")
+    g.add_argument("-v", "--verbose", dest="verbosity", action="store_const",
+                   const=progress.VERBOSE, default=default,
+                   help="also print debug details (runtime set-up, time and memory used)")
 
 
 def _command_modules(package: str):
@@ -37,18 +82,20 @@ def _command_modules(package: str):
 
 
 def build_parser(prog: str, package: str, description: str) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser = OneLineParser(prog=prog, description=description)
     parser.add_argument("--version", action="version",
                         version=f"%(prog)s {importlib.import_module(prog).__version__}")
     parser.add_argument("--variant", choices=runtime.SUPPORTED_VARIANTS, default=None,
                         help="Mitsuba/Dr.Jit variant (default: $SONARSIM_VARIANT or "
                              f"{runtime.DEFAULT_VARIANT})")
+    _add_verbosity(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, modname in _command_modules(package):
         module = importlib.import_module(modname)
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
         _add_common_options(p, module, threads=prog == "recon")
+        _add_verbosity(p, suppress=True)
         p.set_defaults(_run=module.run)
     return parser
 
@@ -124,30 +171,74 @@ def _thread_count(threads):
 
 
 def run_main(prog: str, package: str, description: str, argv=None) -> int:
+    """Parse ``argv``, run the subcommand and return the exit status (see module docstring)."""
+    try:
+        try:
+            status = _run_main(prog, package, description, argv)
+            sys.stdout.flush()       # a closed pipe shows here when the output was buffered
+            return status
+        except KeyboardInterrupt:
+            _print_err(f"{prog}: interrupted")
+            return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+def _run_main(prog: str, package: str, description: str, argv) -> int:
     parser = build_parser(prog, package, description)
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:
         parser.print_help()
         return 0
+    undo = progress.setup_logging(f"{prog} {args.command}", args.verbosity)
+    start, cpu0 = time.monotonic(), _cpu_seconds()
+    try:
+        return _run_command(prog, package, args)
+    finally:
+        log.debug("finished in %.1f s (CPU %.1f s), peak memory %.2f GiB",
+                  time.monotonic() - start, _cpu_seconds() - cpu0, _peak_rss_gib())
+        undo()
+
+
+def _cpu_seconds() -> float:
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _peak_rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20   # KiB on Linux
+
+
+def _run_command(prog: str, package: str, args: argparse.Namespace) -> int:
     try:
         if args.variant:
             runtime.set_variant(args.variant)
         limits.set_max_memory(getattr(args, "max_memory", None))
         _check_seed(args)
+        progress.progress_interval()          # a bad $SONARSIM_PROGRESS_INTERVAL: one line now
         paths = _output_paths(args)
         threads = getattr(args, "threads", None) if "recon" in package else None
         with outputs.output_locks(paths), _thread_count(threads):
             return int(args._run(args) or 0)
     except MemoryError:
-        print(f"{prog}: error: ran out of memory (the run needed more than this machine "
-              "could give; use smaller sizes, or --max-memory to be refused earlier)",
-              file=sys.stderr)
-        return 2
+        _print_err(f"{prog}: error: ran out of memory (the run needed more than this machine "
+                   "could give; use smaller sizes, or --max-memory to be refused earlier)")
+        return EXIT_USAGE
+    except BrokenPipeError:
+        raise
     except (SonarsimError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         msg = str(exc) if not isinstance(exc, OSError) or not exc.filename else \
             f"{exc.filename}: {exc.strerror}"
-        print(f"{prog}: error: {msg}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
+        _print_err(f"{prog}: error: {msg}")
+        return EXIT_USAGE

@@ -13,6 +13,7 @@ registered, so ``mi.load_dict({"type": "sonar_transient", ...})`` works.
 from __future__ import annotations
 
 import glob
+import logging
 import os
 import re
 import subprocess
@@ -34,6 +35,8 @@ _VERSION_RE = re.compile(r"libLLVM(?:-(\d+)|\.so\.(\d+)|\.(\d+)\.dylib|-(\d+)\.d
 
 
 from .errors import SonarsimError
+
+log = logging.getLogger(__name__)
 
 
 class RuntimeSetupError(SonarsimError, RuntimeError):
@@ -138,6 +141,8 @@ def set_variant(name: str | None = None):
     except plugins.PluginImportError as exc:
         raise RuntimeSetupError(str(exc)) from exc
     _state["variant"] = name
+    log.debug("Mitsuba %s, Dr.Jit %s, variant %s, libLLVM %s", mi.__version__, dr.__version__,
+              name, os.environ.get("DRJIT_LIBLLVM_PATH") if name.startswith("llvm") else "-")
     return mi
 
 
