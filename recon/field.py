@@ -105,9 +105,10 @@ class NetworkScene:
         return out.reshape(grid.shape)
 
     def warm_start(self, params: dict, x0: np.ndarray, iterations: int,
-                   rng: np.random.Generator, lr: float = 1e-2, batch: int = 1 << 14) -> dict:
+                   rng: np.random.Generator, lr: float, batch: int = 1 << 14) -> dict:
         """Fit the field to the volume ``x0`` [nx, ny, nz] (e.g. the scaled backprojection) at
-        the voxel centres: half the batch uniform, half ∝ |x0|; Adam on mean|σ − x0|²/max|x0|²."""
+        the voxel centres: half the batch uniform, half ∝ |x0|; Adam (learning rate ``lr``, the
+        setting ``warm_start_lr``) on mean|σ − x0|²/max|x0|²."""
         import drjit as dr
         from .adam import Adam
         m = self.m

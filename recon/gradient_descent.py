@@ -13,13 +13,9 @@ volumes are comparable voxel by voxel.
 """
 from __future__ import annotations
 
-from .solver import (PRESETS, Sampler, SolverSettings, reachable_bins,  # noqa: F401 (re-exports)
-                     targets)
 from . import solver
 from .grid import Grid
-
-GDSettings = SolverSettings
-_Sampler = Sampler
+from .solver import SolverSettings
 
 
 def settings_for(preset: str | None = None, **overrides) -> SolverSettings:
@@ -27,14 +23,13 @@ def settings_for(preset: str | None = None, **overrides) -> SolverSettings:
     return solver.settings_for(preset, network=False, **overrides)
 
 
-def solve(dataset, grid: Grid, *, iterations: int = 1000, seed: int = 0, checkpoint=None,
-          checkpoint_every: int = 500, resume: bool = False, progress: bool = True,
-          callback=None, preset: str | None = None, **overrides):
+def solve(dataset, grid: Grid, *, checkpoint=None,
+          checkpoint_every: int = solver.CHECKPOINT_EVERY, resume: bool = False,
+          progress: bool = True, callback=None, preset: str | None = None, **overrides):
     """Fit complex voxels on ``grid`` to ``dataset``; returns a Volume (method 'gd').
 
     Any :class:`~recon.solver.SolverSettings` field can be given as a keyword.
     """
     return solver.solve(dataset, grid, network=False, method="gd", preset=preset,
-                        iterations=iterations, seed=seed, checkpoint=checkpoint,
-                        checkpoint_every=checkpoint_every, resume=resume, progress=progress,
-                        callback=callback, **overrides)
+                        checkpoint=checkpoint, checkpoint_every=checkpoint_every, resume=resume,
+                        progress=progress, callback=callback, **overrides)

@@ -18,8 +18,8 @@ def settings_for(preset: str | None = "cpu", **overrides) -> solver.SolverSettin
 
 
 def solve(dataset, grid: Grid, *, preset: str | None = "cpu", checkpoint=None,
-          checkpoint_every: int = 200, resume: bool = False, progress: bool = True,
-          callback=None, export_grid: Grid | None = None, **overrides):
+          checkpoint_every: int = solver.CHECKPOINT_EVERY, resume: bool = False,
+          progress: bool = True, callback=None, export_grid: Grid | None = None, **overrides):
     """Fit the neural field to ``dataset`` over ``grid``'s box; returns a Volume (method
     'nbp') sampled on ``export_grid`` (default ``grid``; any resolution). Any
     :class:`~recon.solver.SolverSettings` field can be given as a keyword."""

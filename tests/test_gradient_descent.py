@@ -5,7 +5,7 @@ import pytest
 from recon import backprojection as bp
 from recon import forward as F
 from recon import gradient_descent as gd
-from recon import measurements, nbp, synthetic
+from recon import measurements, nbp, solver, synthetic
 from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
@@ -61,12 +61,12 @@ def test_data_residual_below_optimally_scaled_backprojection(gd_run, point_ds, g
     units, so it is first scaled by the least-squares optimal complex factor
     α = ⟨A x_bp, s⟩/‖A x_bp‖² — the best BP can do through the same A."""
     vol, _ = gd_run
-    settings = gd.GDSettings(**FAST)
+    settings = gd.settings_for(None, **FAST)
     # The data straight from the measurements module, not through the solver's own target
     # function, so that a solver fitting altered data (a scaled or dropped part) fails here.
     tgt = measurements.matched_filtered(point_ds)
     speeds = measurements.sound_speeds(point_ds)
-    first, last = gd.reachable_bins(point_ds, grid, speeds)
+    first, last = solver.reachable_bins(point_ds, grid, speeds)
     pings = np.arange(0, point_ds.n_pings, 2)
     k = int((last - first)[pings].max()) + 1
     bins = np.stack([np.minimum(first[p] + np.arange(k), tgt.shape[1] - 1) for p in pings])
@@ -144,6 +144,8 @@ def test_cli_round_trip(point_ds, tmp_path, capsys):
     vol = Volume.read(out)
     assert vol.method == "gd" and vol.shape == (7, 7, 1)
     assert vol.params["sparsity"] == 0.5 and vol.params["seed"] == 4 and vol.params["iterations"] == 3
+    # a voxel volume carries no network settings (hash grid, MLP, warm start)
+    assert not [k for k in vol.params if k.startswith(("hash_", "mlp_", "warm_start"))]
     np.testing.assert_allclose(vol.bounds, [[-0.02, 0.02], [-0.02, 0.02], [0.1, 0.1]])
     rc = main(["gd", str(src), "--shape", "7", "7", "1", "--out", str(tmp_path / "x.h5"), "--resume"])
     assert rc == 2 and "checkpoint" in capsys.readouterr().err
@@ -155,7 +157,7 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     assert (s.sparsity, s.smoothness, s.phase, s.bins_per_ping, s.lr) == (10.0, 50.0, 0.1, 200, 0.5)
     sim = gd.settings_for("sim")
     assert (sim.lambertian, sim.occlusion_scale, sim.sparsity, sim.init) == (True, 500.0, 1.0, "random")
-    d = gd.GDSettings()
+    d = gd.settings_for(None)
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units) == (
         False, 0.0, 3.0, "bp", "relative")
     n = nbp.settings_for(None)                     # the network keeps the full model, no priors
@@ -221,7 +223,6 @@ def test_default_gd_is_not_worse_than_backprojection_on_point_targets():
 def test_pulse_autocorrelation_model_fits_matched_filtered_data(point_ds):
     """Matched-filtered data are σ convolved with the pulse autocorrelation: the model with
     the autocorrelation (±6 taps) fits them far better than the pulse-free model."""
-    from recon import solver
     acf = solver.pulse_autocorrelation(point_ds, 6)
     assert abs(acf[6]) == pytest.approx(1.0) and np.argmax(np.abs(acf)) == 6
     np.testing.assert_allclose(np.abs(acf), np.abs(acf[::-1]), rtol=0.05)

@@ -10,7 +10,6 @@ from . import _common
 
 # Extra spellings kept for compatibility with earlier releases.
 ALIASES = {"n_rays": ("--rays",), "beamwidth_deg": ("--beamwidth",)}
-NETWORK_ONLY = ("hash_", "mlp_", "warm_start")
 
 
 def _type_of(field):
@@ -25,14 +24,15 @@ def _type_of(field):
 
 
 def add_arguments(parser: argparse.ArgumentParser, network: bool) -> None:
-    from ..solver import CHOICES, HELP, PRESETS, SolverSettings, settings_for
+    from ..solver import (CHECKPOINT_EVERY, CHOICES, HELP, PRESETS, SolverSettings, applies_to,
+                          settings_for)
     base = settings_for(None, network=network)
     _common.add_dataset_and_grid(parser)
     parser.add_argument("--preset", default="cpu" if network else None,
                         help=f"named settings, several joined by '+': {', '.join(PRESETS)} "
                              f"(default {'cpu' if network else 'none'}); explicit options override it")
     for f in dataclasses.fields(SolverSettings):
-        if not network and f.name.startswith(NETWORK_ONLY):
+        if not applies_to(f.name, network):
             continue
         flag = "--" + f.name.replace("_", "-")
         names = (flag,) + ALIASES.get(f.name, ())
@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser, network: bool) -> None:
         else:
             parser.add_argument(*names, dest=f.name, type=kind, default=None, help=text)
     parser.add_argument("--checkpoint", default=None, help="checkpoint file (.npz), written atomically")
-    parser.add_argument("--checkpoint-every", type=int, default=100 if network else 500,
+    parser.add_argument("--checkpoint-every", type=int, default=CHECKPOINT_EVERY,
                         help="iterations between checkpoints")
     parser.add_argument("--resume", action="store_true",
                         help="continue from --checkpoint if it exists (same dataset, grid, settings)")

@@ -35,6 +35,6 @@ from .priors import in_scene_units, loss_terms, random_directions  # noqa: F401
 from .profiling import PhaseTimer  # noqa: F401
 from .sampling import (Sampler, reachable_bins, rolled_frames, target_kind,  # noqa: F401
                        targets)
-from .settings import (CHOICES, HELP, NETWORK_DEFAULTS, PRESETS,  # noqa: F401
-                       SolverSettings, settings_for)
+from .settings import (CHECKPOINT_EVERY, CHOICES, HELP, NETWORK_DEFAULTS,  # noqa: F401
+                       NETWORK_ONLY, PRESETS, SolverSettings, applies_to, settings_for)
 from .voxels import VoxelScene  # noqa: F401

@@ -21,7 +21,7 @@ from .checkpoints import dataset_digest, load_checkpoint, save_checkpoint
 from .priors import in_scene_units, loss_terms, random_directions
 from .profiling import _no_timer
 from .sampling import Sampler, reachable_bins, rolled_frames, target_kind, targets
-from .settings import SolverSettings, settings_for
+from .settings import CHECKPOINT_EVERY, SolverSettings, applies_to, settings_for
 from .voxels import VoxelScene
 
 
@@ -56,7 +56,7 @@ def scaled_backprojection(dataset, grid, tgt, first, last, speeds, settings) -> 
 
 
 def fit(dataset, grid: Grid, settings: SolverSettings, scene, *, checkpoint=None,
-        checkpoint_every=500, resume=False, progress=True, callback=None, desc="fit",
+        checkpoint_every=CHECKPOINT_EVERY, resume=False, progress=True, callback=None, desc="fit",
         timer=None):
     """Optimise ``scene`` (a :class:`VoxelScene` or :class:`recon.field.NetworkScene`);
     returns (Adam parameters dict, history list of dicts, info dict). ``timer``: a
@@ -113,7 +113,8 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     model = in_scene_units(settings, scale)
     if x0 is not None and scene.kind == "network" and (settings.init == "bp"
                                                         or settings.warm_start_iterations):
-        params = scene.warm_start(params, x0, max(settings.warm_start_iterations, 1), rng)
+        params = scene.warm_start(params, x0, max(settings.warm_start_iterations, 1), rng,
+                                  lr=settings.warm_start_lr)
     opt = Adam(params, lr0, epsilon=settings.adam_epsilon)
     start, history = 0, []
     if resume:
@@ -209,7 +210,7 @@ def loss_by_tenth(history: list[dict], key: str) -> list[float]:
 
 
 def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None = None,
-          checkpoint=None, checkpoint_every: int = 500, resume: bool = False,
+          checkpoint=None, checkpoint_every: int = CHECKPOINT_EVERY, resume: bool = False,
           progress: bool = True, callback=None, export_grid: Grid | None = None, timer=None,
           **overrides):
     """Run the solver and return a :class:`~sonarsim.dataset.Volume` (``method``) on ``grid``
@@ -223,7 +224,7 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
                                 progress=progress, callback=callback, desc=method, timer=timer)
     out_grid = grid if export_grid is None else export_grid
     vol = scene.volume(params, out_grid)
-    p = dict(asdict(settings))
+    p = {k: v for k, v in asdict(settings).items() if applies_to(k, network)}
     p["preset"] = preset or "none"
     p["scene"] = scene.kind
     p["final_loss"] = float(history[-1]["loss"]) if history else float("nan")

@@ -55,6 +55,7 @@ class SolverSettings:
     mlp_width: int = 128
     mlp_hidden: int = 3
     warm_start_iterations: int = 0
+    warm_start_lr: float = 1e-2
     autocorrelation_taps: int = 0
 
     def validate(self):
@@ -71,7 +72,7 @@ class SolverSettings:
             raise InputError(f"hash_level_scale: must be >= 1, got {self.hash_level_scale}")
         if self.lr_final is not None and not self.lr_final > 0:
             raise InputError(f"lr_final: must be positive, got {self.lr_final}")
-        for name in ("lr", "scale_factor"):
+        for name in ("lr", "scale_factor", "warm_start_lr"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
         for name in ("sparsity", "smoothness", "phase", "tv", "occlusion_scale", "adam_epsilon",
@@ -84,6 +85,19 @@ class SolverSettings:
                 raise InputError(f"{name}: choose one of {', '.join(options)}, got {getattr(self, name)!r}")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
+
+
+# Iterations between checkpoints: one default for recon gd/nbp, their Python API and the CLI.
+CHECKPOINT_EVERY = 100
+
+# Fields that only the network reads (neither an option of recon gd nor a parameter of its
+# volumes).
+NETWORK_ONLY = ("hash_", "mlp_", "warm_start")
+
+
+def applies_to(name: str, network: bool) -> bool:
+    """Whether the setting ``name`` means something for this representation."""
+    return network or not name.startswith(NETWORK_ONLY)
 
 
 CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
@@ -129,6 +143,8 @@ HELP = {
     "autocorrelation_taps": "model the matched filter: convolve the rendered impulse response with "
                             "the pulse's autocorrelation over ±taps samples (0 = off; for "
                             "matched-filtered targets)",
+    "warm_start_lr": "NBP: Adam learning rate of the warm start (absolute; the fit is to the "
+                     "backprojection normalised to max 1)",
     "warm_start_iterations": "NBP: first fit the network to the scaled backprojection for this many "
                              "steps (0 = reference's cold start)",
 }
