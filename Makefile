@@ -5,7 +5,7 @@ PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed
 DEMO   ?= demo_out
 
-.PHONY: install demo test test-fast bench clean llvm
+.PHONY: install demo test test-fast bench docs clean llvm
 
 install: $(STAMP) llvm
 
@@ -13,7 +13,7 @@ install: $(STAMP) llvm
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test,bench]"
+	$(PY) -m pip install --quiet -e ".[test,bench,batch]"
 	touch $(STAMP)
 
 # Dr.Jit's CPU backend needs libLLVM >= 16 (Debian 12's default 15 aborts).
@@ -29,8 +29,13 @@ test: install
 test-fast: install
 	$(PY) -m pytest -q -m "not slow"
 
+# The Python API reference (pdoc, from the docstrings) into docs/api/ (not committed).
+docs: install
+	$(PY) -m pdoc --docformat markdown --output-directory docs/api sonarsim recon
+	@echo "API reference: docs/api/index.html"
+
 bench: install
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) $(DEMO) .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(DEMO) .pytest_cache build *.egg-info docs/api

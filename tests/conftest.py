@@ -6,15 +6,15 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """``../shared/data`` beside the project; tests that need it skip where it is absent."""
-    if not SHARED_DATA.is_dir():
-        pytest.skip("../shared/data is not present")
-    return SHARED_DATA
+    """The data shipped with sonarsim (:mod:`sonarsim.data`, docs/data.md): ``meshes/``,
+    ``pulses/``, ``airsas_real/`` (the two scans as datasets, ``*.h5``, and the first 6 raw
+    flights of each as LabVIEW CSV folders). Always present: nothing skips for want of data."""
+    from sonarsim import data
+    return data.root()
 
 
 @pytest.fixture(scope="session")
@@ -25,14 +25,11 @@ def mi():
 
 
 @pytest.fixture(scope="session")
-def real_scan(shared_data):
-    """The real AirSAS 2-D scan (background subtracted when the empty scan is there), read once."""
-    from sonarsim.importers.airsas import import_airsas
-    scan = shared_data / "airsas_real" / "small_features_cutout_5k"
-    bg = shared_data / "airsas_real" / "bg_5k"
-    if not scan.is_dir():
-        pytest.skip("real AirSAS scan not present")
-    return import_airsas(scan, bg if bg.is_dir() else None, progress=False)
+def real_scan():
+    """The real AirSAS 2-D scan of the cut-out target (360 pings, 5 kHz LFM), background
+    subtracted: the shipped dataset ``sonarsim import-airsas`` made of it, read once."""
+    from sonarsim import data
+    return data.real_scan()
 
 
 @pytest.fixture(scope="session")
