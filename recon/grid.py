@@ -16,6 +16,9 @@ import numpy as np
 
 from sonarsim.errors import InputError
 
+DEFAULT_VOXEL_SIZE = 0.0032   # metres; the reference's simulated-scene pitch (reference code geometry.py)
+MAX_VOXELS_PER_AXIS = 1e12    # a voxel size that gives more is a typo, refused before any arithmetic
+
 
 def _check_bounds(bounds) -> np.ndarray:
     b = np.asarray(bounds, dtype=np.float64)
@@ -112,6 +115,24 @@ class Grid:
         return cls(np.stack([np.asarray(box.lo, float), np.asarray(box.hi, float)], axis=1), shape)
 
     @classmethod
+    def from_voxel_size(cls, bounds, voxel_size: float = DEFAULT_VOXEL_SIZE) -> "Grid":
+        """Grid over ``bounds`` [3, 2] with voxels ``voxel_size`` metres apart: along each axis
+        ``round((hi - lo) / voxel_size) + 1`` voxel centres from lo to hi (the pitch is adjusted
+        so that both bounds are centres). InputError for a size that is not positive and finite
+        or that gives more than 10^12 voxels along an axis."""
+        b = _check_bounds(bounds)
+        try:
+            size = float(voxel_size)
+        except (TypeError, ValueError):
+            raise InputError(f"voxel size must be a number (m), got {voxel_size!r}") from None
+        if not (np.isfinite(size) and size > 0):
+            raise InputError(f"--voxel-size: must be a positive finite number, got {voxel_size}")
+        counts = [(hi - lo) / size for lo, hi in b]
+        if not all(np.isfinite(n) and n < MAX_VOXELS_PER_AXIS for n in counts):
+            raise InputError(f"--voxel-size {size:g} gives more than 10^12 voxels along an axis")
+        return cls(b, tuple(int(round(n)) + 1 for n in counts))
+
+    @classmethod
     def from_dataset(cls, dataset, shape, bounds=None) -> "Grid":
         """Grid over ``bounds`` if given, else the dataset's scene box, else the rig's SIM_BOX."""
         if bounds is not None:
@@ -127,6 +148,22 @@ class Grid:
 
     def __repr__(self):
         return f"Grid(bounds={self.bounds.tolist()}, shape={self.shape})"
+
+
+def box_bounds(box) -> np.ndarray:
+    """The [3, 2] bounds (metres) of a ``sonarsim.geometry.SceneBox``."""
+    return np.stack([np.asarray(box.lo, float), np.asarray(box.hi, float)], axis=1)
+
+
+def grid_from_options(default_bounds, bounds=None, shape=None,
+                      voxel_size: float = DEFAULT_VOXEL_SIZE) -> Grid:
+    """The grid of the ``--bounds`` / ``--shape`` / ``--voxel-size`` rule, used by the
+    command line and ``sonarsim batch`` alike: ``bounds`` if given, else ``default_bounds``
+    (the dataset's or scene's box); ``shape`` if given, else :meth:`Grid.from_voxel_size`."""
+    b = _check_bounds(default_bounds if bounds is None else bounds)
+    if shape is not None:
+        return Grid(b, shape)
+    return Grid.from_voxel_size(b, voxel_size)
 
 
 def scene_box_of(dataset):
