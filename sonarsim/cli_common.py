@@ -175,11 +175,14 @@ def run_main(prog: str, package: str, description: str, argv=None) -> int:
     try:
         try:
             status = _run_main(prog, package, description, argv)
-            sys.stdout.flush()       # a closed pipe shows here when the output was buffered
-            return status
         except KeyboardInterrupt:
             _print_err(f"{prog}: interrupted")
-            return EXIT_INTERRUPTED
+            status = EXIT_INTERRUPTED
+        except SystemExit:           # --help, --version, usage errors
+            sys.stdout.flush()
+            raise
+        sys.stdout.flush()           # a closed pipe shows here when the output was buffered
+        return status
     except BrokenPipeError:
         _silence_stdout()
         return EXIT_BROKEN_PIPE

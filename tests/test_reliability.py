@@ -491,3 +491,66 @@ def test_negative_seed_is_one_line_for_every_command(ds_file, tmp_path, capsys):
     assert recon_main(["evaluate", str(vol), "--gt", "sphere", "--no-images", "--no-sweep",
                        "--seed", "-1"]) == 2
     assert "--seed must be in [0, 2^32), got -1" in one_line_error(capsys)
+
+
+# ------------------------------------------- firstday-b: broken pipes and Ctrl-C (issue 23.6)
+
+def _into_a_closed_pipe(args):
+    """Run ``python -m ARGS`` with stdout a pipe whose reader has gone (``... | head -1``
+    after head exited)."""
+    import os
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        return subprocess.run([sys.executable, "-m", *args], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=300)
+    finally:
+        os.close(write)
+
+
+def test_output_into_a_closed_pipe_stops_silently_with_sigpipe_status(ds_file, tmp_path):
+    # was: a BrokenPipeError traceback and exit status 1
+    info = _into_a_closed_pipe(["sonarsim.cli", "info", str(ds_file)])
+    assert (info.returncode, info.stderr) == (141, "")
+    vol = tmp_path / "v.h5"
+    assert _bp(ds_file, vol) == 0
+    evaluate = _into_a_closed_pipe(["recon.cli", "evaluate", str(vol), "--gt", "sphere",
+                                    "--no-images", "--no-sweep", "--json"])
+    assert (evaluate.returncode, evaluate.stderr) == (141, "")
+
+
+def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
+    # was: a KeyboardInterrupt traceback (an interrupt before the command ran, e.g. while
+    # the command modules were being imported)
+    from sonarsim import cli_common
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli_common, "build_parser", interrupted)
+    assert sonarsim_main(["info", "x.h5"]) == 130
+    assert one_line_error(capsys) == "sonarsim: interrupted"
+
+
+def test_ctrl_c_during_a_run_is_one_line_and_leaves_no_output(tmp_path):
+    import os
+    import signal
+    ds = synthetic.point_dataset([POINT], n_pings=2000, heights=(0.05, 0.15))
+    ds.write(tmp_path / "d.h5")
+    out = tmp_path / "v.h5"
+    env = dict(os.environ, SONARSIM_PROGRESS_INTERVAL="0.05")
+    proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "backproject",
+                             str(tmp_path / "d.h5"), "--out", str(out), "--shape", "60", "60",
+                             "60", "--threads", "1"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = proc.stderr.readline()           # the first progress line: the run is under way
+        assert "backprojection" in line, line
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [x for x in err.splitlines() if not x.startswith("recon backproject: backprojection")]
+    assert proc.returncode == 130 and lines == ["recon: interrupted"], err
+    assert not out.exists()
