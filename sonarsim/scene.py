@@ -256,14 +256,40 @@ def load_scene(spec: str | Path) -> SceneSpec:
     in a mesh it references; warns with :class:`SceneWarning` (see module docstring).
     """
     path = resolve_scene_path(spec)
+    _refuse_other_formats(path)
     try:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
+        if _looks_like_xml(path):
+            _refuse_other_formats(path, xml=True)
         raise FormatError(f"{path}: not valid TOML: {exc}") from None
     except OSError as exc:
         raise FormatError(f"{path}: cannot read: {exc.strerror}") from None
     return _parse(doc, _Ctx(path))
+
+
+def _refuse_other_formats(path: Path, xml: bool = False) -> None:
+    """A Mitsuba XML scene or a bare mesh given where a scene is expected: say what a
+    scene is here instead of reporting a TOML syntax error."""
+    suffix = path.suffix.lower()
+    if xml or suffix == ".xml":
+        raise FormatError(
+            f"{path}: Mitsuba XML scenes are not a scene format here; a scene is a TOML file "
+            f"(docs/scenes.md) or a shipped name ({', '.join(shipped_scenes())}): list the "
+            "XML scene's meshes as [[object]] mesh = \"part.ply\" in a TOML scene")
+    if suffix in MESH_SUFFIXES:
+        raise FormatError(
+            f"{path}: this is a mesh, not a scene; write a TOML scene with [[object]] "
+            f"mesh = \"{path.name}\" (fit = true places it in the scene box), see docs/scenes.md")
+
+
+def _looks_like_xml(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(256).lstrip().startswith(b"<")
+    except OSError:
+        return False
 
 
 class _Ctx:

@@ -1,6 +1,7 @@
 """Scene files: parsing, shipped scenes, mesh checks, the fit rule, Mitsuba conversion."""
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
 
@@ -357,3 +358,39 @@ def test_normals_option_errors(tmp_path):
                                    'normals = "flat"\nsmooth = true\n'))
     assert load_scene(write(tmp_path, '[[object]]\nshape = "sphere"\nradius = 0.05\n'
                                       'smooth = false\n')).objects[0].normals == "flat"
+
+
+# ------------------------------------------------- issue 24: the docs' keys block, other formats
+
+def test_keys_block_of_the_docs_is_a_scene_that_loads(tmp_path):
+    import tomllib
+    text = (Path(__file__).resolve().parents[1] / "docs" / "scenes.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert blocks
+    for block in blocks:
+        tomllib.loads(block)                                 # every TOML block parses as copied
+    keys = next(b for b in blocks if 'mesh = "part.obj"' in b)
+    trimesh.creation.box(extents=[1.0, 2.0, 0.5]).export(tmp_path / "part.obj")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneWarning)          # and it is a clean scene
+        spec = load_scene(write(tmp_path, keys))
+    assert spec.name == "my scene" and spec.ground.albedo == 1.0
+    cylinder, part = spec.objects
+    lo, hi = cylinder.mesh.bounds
+    assert np.allclose([lo[2], hi[2]], [0.0, 0.2]) and np.isclose(hi[0] - lo[0], 0.06, rtol=1e-3)
+    lo, hi = part.mesh.bounds                                 # fitted: 0.3 * 0.4 m along y
+    assert np.isclose(hi[1] - lo[1], 0.12) and np.isclose(lo[2], 0.0) and part.albedo == 0.5
+    assert np.isclose((lo[0] + hi[0]) / 2, -0.08)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("scene.xml", '<scene version="3.0.0"><shape type="ply"/></scene>',
+     "Mitsuba XML scenes are not a scene format here; a scene is a TOML file"),
+    ("scene.toml", '<?xml version="1.0"?>\n<scene version="3.0.0"/>',
+     "Mitsuba XML scenes are not a scene format here"),
+    ("bunny.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+     'this is a mesh, not a scene; write a TOML scene with [[object]] mesh = "bunny.obj"'),
+])
+def test_other_formats_given_as_a_scene_say_what_a_scene_is(tmp_path, name, text, message):
+    with pytest.raises(FormatError, match=re.escape(message)):
+        load_scene(write(tmp_path, text, name))
