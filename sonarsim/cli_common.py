@@ -38,7 +38,7 @@ import sys
 import time
 
 from . import limits, outputs, progress, runtime
-from .threads import dr_threads
+from .threads import check_threads, dr_threads
 from .errors import InputError, SonarsimError
 
 EXIT_USAGE = 2
@@ -100,9 +100,6 @@ def build_parser(prog: str, package: str, description: str) -> argparse.Argument
     return parser
 
 
-MAX_THREADS = 1024     # Dr.Jit worker threads; more only exhausts the process's thread limit
-
-
 def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
     return any(option in a.option_strings for a in parser._actions)
 
@@ -161,11 +158,8 @@ def _check_seed(args: argparse.Namespace) -> None:
 
 def _thread_count(threads):
     """Dr.Jit runs on ``threads`` worker threads inside (None: unchanged); checked first."""
+    threads = check_threads(threads)
     if threads is not None:
-        if isinstance(threads, bool) or int(threads) != threads or threads < 1:
-            raise InputError(f"--threads must be >= 1, got {threads}")
-        if threads > MAX_THREADS:
-            raise InputError(f"--threads must be at most {MAX_THREADS}, got {threads}")
         runtime.mitsuba()       # a working libLLVM before drjit is imported
     return dr_threads(threads)
 

@@ -536,10 +536,19 @@ def _load_mesh_file(raw: dict, where: str, ctx: _Ctx) -> trimesh.Trimesh:
     path = Path(name).expanduser()
     if not path.is_absolute():
         path = ctx.path.parent / path
+        if not path.exists():          # e.g. mesh = "bunny.obj": the mesh shipped with sonarsim
+            from . import data
+            shipped = data.find(name)
+            if shipped is not None and shipped.suffix.lower() in MESH_SUFFIXES:
+                path = shipped
     try:
         return load_mesh(path)
     except FormatError as exc:
-        raise ctx.error(f"{where}.mesh", str(exc)) from None
+        extra = ""
+        if not path.exists():
+            from . import data
+            extra = f" (shipped meshes: {', '.join(data.mesh_names())})"
+        raise ctx.error(f"{where}.mesh", f"{exc}{extra}") from None
 
 
 def _warn_outside_box(obj: SceneObject, box: SceneBox, ctx: _Ctx) -> None:

@@ -394,3 +394,12 @@ def test_keys_block_of_the_docs_is_a_scene_that_loads(tmp_path):
 def test_other_formats_given_as_a_scene_say_what_a_scene_is(tmp_path, name, text, message):
     with pytest.raises(FormatError, match=re.escape(message)):
         load_scene(write(tmp_path, text, name))
+
+
+def test_a_mesh_name_finds_the_shipped_mesh_unless_a_file_is_next_to_the_scene(tmp_path):
+    scene = write(tmp_path, '[[object]]\nmesh = "bunny.obj"\nfit = true\n')
+    assert len(load_scene(scene).objects[0].mesh.faces) == 4968       # the reference's bunny
+    trimesh.creation.box(extents=[0.1, 0.1, 0.1]).export(tmp_path / "bunny.obj")
+    assert len(load_scene(scene).objects[0].mesh.faces) == 12         # the file next to it
+    with pytest.raises(FormatError, match=r"object\[0\]\.mesh: .*\(shipped meshes: bunny\.obj"):
+        load_scene(write(tmp_path, '[[object]]\nmesh = "rabbit.obj"\n'))
