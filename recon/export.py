@@ -223,55 +223,129 @@ def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = 
     return path
 
 
-def write_mip_exr(path: str | Path, magnitude: np.ndarray, bounds) -> Path:
-    """Write the three MIPs as float32 into a multi-part OpenEXR file.
+def mip_exr_paths(path: str | Path) -> dict[str, Path]:
+    """The three files :func:`write_mip_exr` writes for ``path``: ``{'mip_z': STEM_z.exr,
+    'mip_y': STEM_y.exr, 'mip_x': STEM_x.exr}`` (the letter: the axis projected along)."""
+    path = Path(path)
+    suffix = path.suffix or ".exr"
+    return {f"mip_{a}": path.with_name(f"{path.stem}_{a}{suffix}") for a in "zyx"}
 
-    Parts ``mip_z``, ``mip_y``, ``mip_x``, each one channel ``Y`` stored as displayed
-    (row 0 = the highest row coordinate). Header attributes per part: ``sonarsim_u_axis``,
-    ``sonarsim_v_axis`` (axis names of columns/rows) and ``sonarsim_u_range_m``,
-    ``sonarsim_v_range_m`` (outer pixel edges, metres). Read back with :func:`read_mip_exr`.
+
+def write_mip_exr(path: str | Path, magnitude: np.ndarray, bounds) -> list[Path]:
+    """Write the three MIPs as float32 single-channel OpenEXR images, one file each.
+
+    ``STEM_z.exr``, ``STEM_y.exr``, ``STEM_x.exr`` (:func:`mip_exr_paths`): single-part
+    scanline files with one channel ``Y`` (the grey channel every EXR reader knows), stored
+    as displayed (row 0 = the highest row coordinate). Header attributes:
+    ``sonarsim_u_axis``, ``sonarsim_v_axis`` (axis names of columns/rows) and
+    ``sonarsim_u_range_m``, ``sonarsim_v_range_m`` (outer pixel edges, metres). Read back
+    with :func:`read_mip_exr`.
     """
     import OpenEXR
 
-    path = Path(path)
     shape = magnitude.shape
-    images = {}
-    for axis in (2, 1, 0):
-        images[axis] = np.ascontiguousarray(mip(magnitude, axis)[::-1], dtype=np.float32)
-    width = max(im.shape[1] for im in images.values())
-    height = max(im.shape[0] for im in images.values())
-    parts = []
-    for axis, im in images.items():
+    written = []
+    for (name, out), axis in zip(mip_exr_paths(path).items(), (2, 1, 0)):
+        image = np.ascontiguousarray(mip(magnitude, axis)[::-1], dtype=np.float32)
         u, v = mip_axes(axis)
         header = {
             "compression": OpenEXR.ZIP_COMPRESSION,
             "type": OpenEXR.scanlineimage,
-            # all parts of a multi-part file must share the display window
-            "displayWindow": (np.array([0, 0], np.int32),
-                              np.array([width - 1, height - 1], np.int32)),
-            "dataWindow": (np.array([0, 0], np.int32),
-                           np.array([im.shape[1] - 1, im.shape[0] - 1], np.int32)),
             "sonarsim_u_axis": AXIS_NAMES[u],
             "sonarsim_v_axis": AXIS_NAMES[v],
             "sonarsim_u_range_m": " ".join(f"{x:.9g}" for x in pixel_extent(bounds, shape, u)),
             "sonarsim_v_range_m": " ".join(f"{x:.9g}" for x in pixel_extent(bounds, shape, v)),
+            "comments": f"maximum of the normalised magnitude along {AXIS_NAMES[axis]}",
         }
-        parts.append(OpenEXR.Part(header, {"Y": im}, f"mip_{AXIS_NAMES[axis]}"))
-    with atomic_path(path) as tmp:
-        OpenEXR.File(parts).write(str(tmp))
-    return path
+        with atomic_path(out) as tmp, OpenEXR.File(header, {"Y": image}) as f:
+            f.write(str(tmp))
+        written.append(out)
+    return written
 
 
 def read_mip_exr(path: str | Path) -> dict[str, np.ndarray]:
     """The MIPs of :func:`write_mip_exr` as ``{'mip_z': [ny, nx], ...}`` (row 0 = lowest)."""
     import OpenEXR
 
-    try:
-        f = OpenEXR.File(str(path), separate_channels=True)
-    except Exception as exc:  # OpenEXR raises RuntimeError/OSError variants
-        from sonarsim.errors import FormatError
-        raise FormatError(f"{path}: not a readable OpenEXR file ({exc})") from None
-    return {p.name(): np.asarray(p.channels["Y"].pixels)[::-1] for p in f.parts}
+    from sonarsim.errors import FormatError
+    images = {}
+    for name, file in mip_exr_paths(path).items():
+        try:
+            with OpenEXR.File(str(file)) as f:
+                images[name] = np.array(f.channels()["Y"].pixels)[::-1]
+        except Exception as exc:  # OpenEXR raises RuntimeError/OSError variants
+            raise FormatError(f"{file}: not a readable OpenEXR file ({exc})") from None
+    return images
+
+
+# --------------------------------------------------------------------- 3-D volume files
+
+def volume_channels(volume: np.ndarray) -> dict[str, np.ndarray]:
+    """The values other tools get: ``magnitude`` = |v| and ``phase`` = arg v in radians
+    (-π, π], both float32 ``[nx, ny, nz]`` (the magnitude as stored, not normalised)."""
+    v = check_volume_array(volume)
+    return {"magnitude": np.abs(v).astype(np.float32),
+            "phase": np.angle(v).astype(np.float32)}
+
+
+def grid_geometry(bounds, shape) -> tuple[np.ndarray, np.ndarray]:
+    """(origin [3], spacing [3]) in metres: the first voxel centre and the voxel pitch
+    (docs/frames.md; an axis with one voxel takes the smallest pitch of the others)."""
+    b = check_bounds(bounds, shape)
+    return b[:, 0].copy(), voxel_spacing(b, shape)
+
+
+def write_vti(path: str | Path, volume: np.ndarray, bounds) -> Path:
+    """Write a volume as VTK XML ImageData (``.vti``; ParaView, VisIt, PyVista, 3D Slicer).
+
+    Point data ``magnitude`` and ``phase`` (:func:`volume_channels`) on the grid's points,
+    which are the voxel centres: ``Origin`` = the first centre (x0, y0, z0) and ``Spacing``
+    = the pitch (:func:`grid_geometry`), metres, world frame. Written with pyevtk (raw
+    appended binary, the layout VTK's own writer uses).
+    """
+    import os
+
+    from pyevtk.hl import imageToVTK
+
+    path = Path(path)
+    channels = volume_channels(volume)
+    origin, spacing = grid_geometry(bounds, channels["magnitude"].shape)
+    with atomic_path(path) as tmp:
+        written = imageToVTK(str(tmp), origin=tuple(float(x) for x in origin),
+                             spacing=tuple(float(x) for x in spacing),
+                             pointData={k: np.ascontiguousarray(a) for k, a in channels.items()})
+        os.replace(written, tmp)          # pyevtk appends ".vti" to the name it is given
+    return path
+
+
+def write_ome_tiff(path: str | Path, volume: np.ndarray, bounds) -> Path:
+    """Write a volume as OME-TIFF (``.ome.tif``; napari, Fiji/Bio-Formats, ParaView).
+
+    One float32 image stack, axes ``CZYX``: channel 0 ``magnitude``, channel 1 ``phase``
+    (radians); plane k is z = z_k, row j is y = y_j, column i is x = x_i. OME metadata:
+    ``PhysicalSizeX/Y/Z`` = the voxel pitch in metres (unit ``m``) and each plane's
+    ``PositionX/Y/Z`` = the world position of its first voxel centre, metres. Written with
+    tifffile.
+    """
+    import tifffile
+
+    path = Path(path)
+    channels = volume_channels(volume)
+    origin, spacing = grid_geometry(bounds, channels["magnitude"].shape)
+    stack = np.stack([channels["magnitude"], channels["phase"]]).transpose(0, 3, 2, 1)
+    nz = stack.shape[1]
+    z = origin[2] + spacing[2] * np.arange(nz)
+    plane = {"PositionX": [float(origin[0])] * 2 * nz, "PositionXUnit": ["m"] * 2 * nz,
+             "PositionY": [float(origin[1])] * 2 * nz, "PositionYUnit": ["m"] * 2 * nz,
+             "PositionZ": [float(p) for p in z] * 2, "PositionZUnit": ["m"] * 2 * nz}
+    metadata = {"axes": "CZYX", "Channel": {"Name": ["magnitude", "phase"]}, "Plane": plane,
+                "PhysicalSizeX": float(spacing[0]), "PhysicalSizeXUnit": "m",
+                "PhysicalSizeY": float(spacing[1]), "PhysicalSizeYUnit": "m",
+                "PhysicalSizeZ": float(spacing[2]), "PhysicalSizeZUnit": "m"}
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, np.ascontiguousarray(stack), ome=True, metadata=metadata,
+                         photometric="minisblack", compression="zlib")
+    return path
 
 
 # --------------------------------------------------------------------------- slices
@@ -282,7 +356,8 @@ def write_slices(directory: str | Path, magnitude: np.ndarray, bounds, axis: int
 
     Grey level = round(255 * normalised magnitude); rows/columns as in :func:`mip`
     (highest row coordinate at the top of the picture). ``slices.json`` lists the world
-    coordinate (m) of each slice and the pixel extents.
+    coordinate (m) of each slice and the pixel extents. Each file is written atomically and
+    the index last, so an interrupted run leaves no partial picture and no index.
     """
     from PIL import Image
 
@@ -296,14 +371,16 @@ def write_slices(directory: str | Path, magnitude: np.ndarray, bounds, axis: int
         img = np.take(magnitude, k, axis=axis).T[::-1]
         grey = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
         p = directory / f"slice_{name}_{k:04d}.png"
-        Image.fromarray(grey, mode="L").save(p)
+        with atomic_path(p) as tmp:
+            Image.fromarray(grey, mode="L").save(tmp, format="PNG")
         written.append(p)
     meta = {"axis": name, "coordinates_m": [float(c) for c in coords],
             "files": [p.name for p in written],
             "u_axis": AXIS_NAMES[u], "u_range_m": pixel_extent(bounds, magnitude.shape, u),
             "v_axis": AXIS_NAMES[v], "v_range_m": pixel_extent(bounds, magnitude.shape, v),
             "value": "round(255 * normalised magnitude); top row = highest v"}
-    (directory / "slices.json").write_text(json.dumps(meta, indent=1))
+    with atomic_path(directory / "slices.json") as tmp:    # the index last: complete set
+        Path(tmp).write_text(json.dumps(meta, indent=1))
     return written
 
 

@@ -91,6 +91,8 @@ def test_degenerate_volumes_give_defined_results(tmp_path):
     export.write_mip_png(tmp_path / "slab.png", mag, b)
     export.write_mip_exr(tmp_path / "slab.exr", mag, b)
     assert export.read_mip_exr(tmp_path / "slab.exr")["mip_x"].shape == (1, 21)
+    export.write_vti(tmp_path / "slab.vti", mag.astype(np.complex64), b)     # one z voxel
+    assert _read_vti(tmp_path / "slab.vti")[2] == pytest.approx((0.01, 0.01, 0.01))
 
 
 def test_mip_orientation_png_and_exr_roundtrip(tmp_path):
@@ -105,16 +107,26 @@ def test_mip_orientation_png_and_exr_roundtrip(tmp_path):
     png = export.write_mip_png(tmp_path / "m.png", mag, BOUNDS, title="t")
     img = mpimg.imread(png)
     assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 300
-    exr = export.write_mip_exr(tmp_path / "m.exr", mag, BOUNDS)
-    back = export.read_mip_exr(exr)
+    files = export.write_mip_exr(tmp_path / "m.exr", mag, BOUNDS)
+    assert [f.name for f in files] == ["m_z.exr", "m_y.exr", "m_x.exr"]
+    back = export.read_mip_exr(tmp_path / "m.exr")
     assert set(back) == {"mip_x", "mip_y", "mip_z"}
     for axis, name in enumerate("xyz"):
         assert np.array_equal(back[f"mip_{name}"], export.mip(mag, axis))
     import OpenEXR
-    hdr = {p.name(): p.header for p in OpenEXR.File(str(exr)).parts}
-    lo, hi = map(float, hdr["mip_z"]["sonarsim_u_range_m"].split())
-    assert (lo, hi) == pytest.approx((-0.1 - 0.0025, 0.1 + 0.0025))
-    assert hdr["mip_y"]["sonarsim_v_axis"] == "z"
+    # each file is a plain single-part image with one channel Y, as generic readers expect
+    # (was one multi-part file, which OpenEXR.File(...).channels() and imageio cannot read whole)
+    for axis, name in enumerate("xyz"):
+        with OpenEXR.File(str(tmp_path / f"m_{name}.exr")) as f:
+            assert len(f.parts) == 1 and list(f.channels()) == ["Y"]
+            pixels = np.array(f.channels()["Y"].pixels)
+            assert pixels.dtype == np.float32
+            assert np.array_equal(pixels, export.mip(mag, axis)[::-1])    # top row = highest
+            if name == "z":
+                lo, hi = map(float, f.header()["sonarsim_u_range_m"].split())
+                assert (lo, hi) == pytest.approx((-0.1 - 0.0025, 0.1 + 0.0025))
+            if name == "y":
+                assert f.header()["sonarsim_v_axis"] == "z"
 
 
 def test_slices_and_mesh_files(tmp_path):
@@ -150,7 +162,7 @@ def test_cli_export(tmp_path, capsys):
                "--mip", str(tmp_path / "m.png"), "--exr", str(tmp_path / "m.exr"),
                "--slices", str(tmp_path / "sl"), "--threshold", "0.5"])
     assert rc == 0
-    for name in ("m.ply", "m.png", "m.exr", "sl/slices.json"):
+    for name in ("m.ply", "m.png", "m_z.exr", "m_y.exr", "m_x.exr", "sl/slices.json"):
         assert (tmp_path / name).is_file()
     mesh = trimesh.load(tmp_path / "m.ply", force="mesh")
     assert np.abs(np.linalg.norm(mesh.vertices - CENTRE, axis=1) - RADIUS).max() < 1e-3
@@ -159,3 +171,89 @@ def test_cli_export(tmp_path, capsys):
     assert main(["export", str(tmp_path / "z.h5"), "--mesh", str(tmp_path / "z.ply")]) == 2
     assert "no voxel above threshold" in capsys.readouterr().err
     assert not (tmp_path / "z.ply").exists()
+
+
+# ------------------------------------------------- files other tools open (issue 24, item 3)
+
+def _test_volume():
+    """A complex volume on the anisotropic grid: magnitude and phase both vary per voxel."""
+    x, y, z = np.meshgrid(*export.voxel_axes(BOUNDS, SHAPE), indexing="ij")
+    mag = 0.1 + cone()
+    return (mag * np.exp(1j * (40 * x - 25 * y + 10 * z))).astype(np.complex64)
+
+
+def _read_vti(path):
+    """(magnitude [nx, ny, nz], phase, spacing, origin) through VTK's XML reader, the reader
+    ParaView uses."""
+    vtk = pytest.importorskip("vtk")
+    from vtk.util.numpy_support import vtk_to_numpy
+    reader = vtk.vtkXMLImageDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    image = reader.GetOutput()
+    nx, ny, nz = image.GetDimensions()
+    arrays = [vtk_to_numpy(image.GetPointData().GetArray(name)).reshape(nz, ny, nx)
+              .transpose(2, 1, 0) for name in ("magnitude", "phase")]   # VTK: x fastest
+    return arrays[0], arrays[1], image.GetSpacing(), image.GetOrigin(), image
+
+
+def test_vti_opens_in_vtk_with_world_coordinates(tmp_path):
+    v = _test_volume()
+    export.write_vti(tmp_path / "v.vti", v, BOUNDS)
+    mag, phase, spacing, origin, image = _read_vti(tmp_path / "v.vti")
+    assert mag.shape == SHAPE
+    np.testing.assert_array_equal(mag, np.abs(v).astype(np.float32))
+    np.testing.assert_allclose(phase, np.angle(v), atol=1e-6)
+    assert spacing == pytest.approx((0.2 / 40, 0.2 / 30, 0.3 / 50))
+    assert origin == pytest.approx((-0.1, -0.05, 0.0))
+    # VTK's own world position of a voxel is its centre as docs/frames.md defines it
+    centres = export.voxel_axes(BOUNDS, SHAPE)
+    i, j, k = 30, 7, 44
+    assert image.GetPoint(image.ComputePointId([i, j, k])) == pytest.approx(
+        (centres[0][i], centres[1][j], centres[2][k]))
+    assert image.GetBounds() == pytest.approx(BOUNDS.ravel())
+
+
+def test_ome_tiff_has_channels_pitch_and_position(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    import tifffile
+    v = _test_volume()
+    export.write_ome_tiff(tmp_path / "v.ome.tif", v, BOUNDS)
+    with tifffile.TiffFile(tmp_path / "v.ome.tif") as tif:
+        series = tif.series[0]
+        assert series.axes == "CZYX"
+        data = series.asarray()
+        ome = ET.fromstring(tif.ome_metadata)
+    np.testing.assert_array_equal(data[0], np.abs(v).astype(np.float32).transpose(2, 1, 0))
+    np.testing.assert_allclose(data[1], np.angle(v).transpose(2, 1, 0), atol=1e-6)
+    ns = {"o": "http://www.openmicroscopy.org/Schemas/OME/2016-06"}
+    pixels = ome.find(".//o:Pixels", ns)
+    for axis, pitch in zip("XYZ", (0.2 / 40, 0.2 / 30, 0.3 / 50)):
+        assert float(pixels.get(f"PhysicalSize{axis}")) == pytest.approx(pitch)
+        assert pixels.get(f"PhysicalSize{axis}Unit") == "m"
+    assert [c.get("Name") for c in pixels.findall("o:Channel", ns)] == ["magnitude", "phase"]
+    planes = pixels.findall("o:Plane", ns)
+    z = export.voxel_axes(BOUNDS, SHAPE)[2]
+    for p in planes:
+        assert float(p.get("PositionZ")) == pytest.approx(z[int(p.get("TheZ"))])
+        assert (float(p.get("PositionX")), float(p.get("PositionY"))) == (-0.1, -0.05)
+
+
+def test_cli_export_vti_and_tiff(tmp_path, capsys):
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+
+    v = _test_volume()
+    Volume(v, BOUNDS, "test").write(tmp_path / "v.h5")
+    assert main(["export", str(tmp_path / "v.h5"), "--vti", str(tmp_path / "v.vti"),
+                 "--tiff", str(tmp_path / "v.ome.tif")]) == 0
+    out = capsys.readouterr().out
+    assert "vti: " in out and "first centre (-0.1, -0.05, 0) m" in out
+    mag = _read_vti(tmp_path / "v.vti")[0]
+    np.testing.assert_array_equal(mag, np.abs(v))
+    # existing outputs are kept without --force, the derived EXR names included
+    (tmp_path / "e_y.exr").write_text("keep")
+    assert main(["export", str(tmp_path / "v.h5"), "--exr", str(tmp_path / "e.exr")]) == 2
+    assert "--exr " in capsys.readouterr().err and (tmp_path / "e_y.exr").read_text() == "keep"
+    assert not (tmp_path / "e_z.exr").exists()
