@@ -9,7 +9,9 @@
   (:func:`sonarsim.signals.matched_filter`, the same linear filter the reconstructions use); EXR channel ``Y`` = magnitude (plus ``re``, ``im`` with
   ``complex_exr``).
 - ``pulse.png``: the pulse against time and its spectrum in dB.
-- ``trajectory.png``: TX and RX positions in 3-D with the scene box and a few boresights.
+- ``trajectory.png``: TX and RX positions seen from above (x, y) and from the side (distance
+  from the rotation axis, z), each at equal scale on both axes, with the scene box, a few TX
+  boresights and the ground-truth mesh when the dataset has one.
 - for a dataset that keeps its transients, the pictures of :mod:`sonarsim.plot_transients`.
 
 PNG echo images of more than ``MAX_PNG_ROWS`` pings show the maximum over groups of
@@ -129,43 +131,66 @@ def _pulse_figure(pulse: np.ndarray, fs: float):
     return fig
 
 
-def _box_edges(box: "geometry.SceneBox"):
-    c = box.corners()
-    for i in range(8):
-        for axis in range(3):
-            j = i | (1 << axis)
-            if j != i:
-                yield c[i], c[j]
-
-
 def _trajectory_figure(ds, box: "geometry.SceneBox"):
+    """Top view (x, y) and side view (distance from the rotation axis, z), both at equal
+    scale on the two axes: a 3-D view at true scale flattens the scan's few centimetres of
+    height against its 1.7 m diameter, and one with stretched z misstates the geometry."""
     from matplotlib.figure import Figure
 
     n = ds.tx.shape[0]
     step = max(1, n // _MAX_TRAJECTORY_POINTS)
-    fig = Figure(figsize=(7, 7))
-    ax = fig.add_subplot(projection="3d")
-    ax.scatter(*ds.tx[::step].T, s=2, c="tab:red", label="TX")
-    ax.scatter(*ds.rx[::step].T, s=2, c="tab:blue", label="RX")
-    for a, b in _box_edges(box):
-        ax.plot(*np.stack([a, b]).T, c="k", lw=0.8)
+    tx, rx = ds.tx[::step], ds.rx[::step]
+    radius = lambda p: np.hypot(p[..., 0], p[..., 1])          # noqa: E731
+    lo, hi = np.asarray(box.lo, float), np.asarray(box.hi, float)
+    fig = Figure(figsize=(12, 5.5), layout="constrained")
+    ax_top, ax_side = fig.subplots(1, 2, width_ratios=[1, 1.3])
+
+    ax_top.scatter(tx[:, 0], tx[:, 1], s=3, c="tab:red", label="TX")
+    ax_top.scatter(rx[:, 0], rx[:, 1], s=3, c="tab:blue", label="RX")
+    ax_top.add_patch(_rectangle(lo[:2], hi[:2]))
+    ax_side.scatter(radius(tx), tx[:, 2], s=3, c="tab:red", label="TX")
+    ax_side.scatter(radius(rx), rx[:, 2], s=3, c="tab:blue", label="RX")
+    corner = np.max(np.abs(np.stack([lo[:2], hi[:2]])), axis=0)
+    r_box = float(np.hypot(*corner))
+    ax_side.add_patch(_rectangle([0.0, lo[2]], [r_box, hi[2]]))
+
     arrows = np.linspace(0, n - 1, min(n, 12)).astype(int)
-    length = 0.25 * float(np.linalg.norm(ds.tx[0] - box.center))
-    ax.quiver(*ds.tx[arrows].T, *(ds.boresight[arrows] * length).T, color="tab:orange",
-              lw=0.8, label="boresight")
+    length = 0.25 * float(np.linalg.norm(ds.tx[0] - np.asarray(box.center)))
+    b = ds.boresight[arrows] * length
+    ax_top.quiver(ds.tx[arrows, 0], ds.tx[arrows, 1], b[:, 0], b[:, 1], color="tab:orange",
+                  angles="xy", scale_units="xy", scale=1, width=0.004, label="TX boresight")
+    # In the side view the boresight's horizontal part points at the axis (radius shrinks).
+    b_r = np.sum(ds.boresight[arrows, :2] * ds.tx[arrows, :2], axis=1) / np.maximum(
+        radius(ds.tx[arrows]), 1e-12) * length
+    ax_side.quiver(radius(ds.tx[arrows]), ds.tx[arrows, 2], b_r, b[:, 2], color="tab:orange",
+                   angles="xy", scale_units="xy", scale=1, width=0.004, label="TX boresight")
     if getattr(ds, "gt_vertices", None) is not None and len(ds.gt_vertices):
         v = np.asarray(ds.gt_vertices)
         v = v[:: max(1, len(v) // 3000)]
-        ax.scatter(*v.T, s=1, c="0.4", label="ground-truth mesh")
-    pts = np.concatenate([ds.tx, ds.rx, box.corners()])
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
-    ax.set_title(f"{n} pings; box {box.lo.tolist()} – {box.hi.tolist()} m", fontsize=9)
-    ax.legend(loc="upper left", fontsize=8)
+        ax_top.scatter(v[:, 0], v[:, 1], s=1, c="0.4", label="ground-truth mesh")
+        ax_side.scatter(radius(v), v[:, 2], s=1, c="0.4", label="ground-truth mesh")
+    ax_side.axhline(0.0, c="0.6", lw=0.8, ls=":", label="turntable z = 0")
+
+    for ax in (ax_top, ax_side):
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    ax_side.legend(loc="best", fontsize=8)          # the same symbols in both views
+    ax_top.set_xlabel("x [m]")
+    ax_top.set_ylabel("y [m]")
+    ax_top.set_title(f"top view: {n} pings, the scene box (black)", fontsize=9)
+    ax_side.set_xlabel("horizontal distance from the rotation axis (z axis) [m]")
+    ax_side.set_ylabel("z [m]")
+    heights = np.unique(np.round(ds.tx[:, 2], 6))
+    ax_side.set_title(f"side view, same scale on both axes: TX at {len(heights)} height(s) "
+                      f"{heights.min():.3f} .. {heights.max():.3f} m; box z "
+                      f"{lo[2]:g} .. {hi[2]:g} m", fontsize=9)
     return fig
+
+
+def _rectangle(lo, hi):
+    from matplotlib.patches import Rectangle
+    return Rectangle(tuple(lo), float(hi[0] - lo[0]), float(hi[1] - lo[1]), fill=False,
+                     ec="k", lw=0.9, label="scene box")
 
 
 def default_box(ds) -> "geometry.SceneBox":

@@ -8,8 +8,9 @@
   More than ``MAX_PNG_ROWS`` pings are max-pooled over groups of consecutive pings.
 - ``transients_bounce<b>.exr`` (b = 1..B): channel ``Y`` = the stored float32 energies of
   bounce b, row i = ping i, column j = path-length bin j (axis in the EXR ``comments``).
-- ``transients_energy.png``: total energy per bounce (summed over pings and bins) and the
-  energy of each ping per bounce.
+- ``transients_energy.png``: each bounce's share of the total energy (linear axis, the
+  energy summed over pings and bins in the labels) and the energy of each ping per bounce
+  (dB re the largest).
 - ``transients_profiles.png``: energy against path length per bounce for a few pings.
 
 Energies are those of the file (per path-length bin; see docs/formats.md), so the total of
@@ -121,36 +122,38 @@ def _image_figure(tr: Transients, per_bounce: np.ndarray, dynamic_range_db: floa
 
 
 def _energy_figure(tr: Transients, per_ping: np.ndarray):
+    """Left: each bounce's share of the total energy on a linear axis (a log axis would make
+    a 1 % bounce look comparable to a 98 % one), annotated with the energy itself. Right: the
+    energy of each ping per bounce in dB re the largest, where the spread is the point."""
     from matplotlib.figure import Figure
 
     per_bounce = per_ping.sum(axis=0)
     bounces = np.arange(1, tr.n_bounces + 1)
-    fig = Figure(figsize=(11, 4))
+    total = float(per_bounce.sum())
+    share = 100.0 * per_bounce / total if total > 0 else np.zeros_like(per_bounce)
+    fig = Figure(figsize=(11, 4), layout="constrained")
     ax_b, ax_p = fig.subplots(1, 2)
-    ax_b.bar(bounces, per_bounce, color="tab:blue")
-    total = per_bounce.sum()
-    for b, e in zip(bounces, per_bounce):
-        ax_b.annotate(f"{e:.3g}\n{100 * e / total if total > 0 else 0:.1f} %", (b, e),
-                      ha="center", va="bottom", fontsize=8)
-    if np.any(per_bounce > 0):
-        ax_b.set_yscale("log")
+    ax_b.bar(bounces, share, color="tab:blue")
+    for b, e, pct in zip(bounces, per_bounce, share):
+        ax_b.annotate(f"{pct:.1f} %\n({e:.3g})", (b, pct), ha="center", va="bottom", fontsize=8)
+    ax_b.set_ylim(0, 115)
     ax_b.set_xticks(bounces)
     ax_b.set_xlabel("bounce")
-    ax_b.set_ylabel("energy summed over pings and bins")
-    ax_b.set_title("energy per bounce", fontsize=9)
+    ax_b.set_ylabel("share of the total energy [%] (linear)")
+    ax_b.set_title("energy per bounce (in brackets: summed over pings and bins)", fontsize=9)
     pings = np.arange(tr.n_pings)
+    reference = float(per_ping.max()) if per_ping.size else 0.0
     for b in range(tr.n_bounces):
         e = per_ping[:, b]
         if np.any(e > 0):
-            ax_p.plot(pings, np.where(e > 0, e, np.nan), lw=0.8, label=f"bounce {b + 1}")
+            ax_p.plot(pings, np.where(e > 0, to_db(e, 200.0, power=True, reference=reference),
+                                      np.nan), lw=0.8, label=f"bounce {b + 1}")
     if ax_p.lines:
-        ax_p.set_yscale("log")
         ax_p.legend(fontsize=8)
     ax_p.set_xlabel("ping index")
-    ax_p.set_ylabel("energy summed over bins")
+    ax_p.set_ylabel("energy summed over bins [dB re the largest]")
     ax_p.set_title("energy per ping", fontsize=9)
     ax_p.grid(True, alpha=0.3)
-    fig.tight_layout()
     return fig
 
 

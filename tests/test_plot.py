@@ -227,3 +227,40 @@ def test_deconvolved_dataset_is_pictured_as_stored(tmp_path):
     images = echo_images(w, np.ones(8), max_rows=5)
     np.testing.assert_allclose(images["mf"], np.abs(w), rtol=1e-6)
     np.testing.assert_allclose(images["raw_rows"], np.abs(w), rtol=1e-6)
+
+
+def test_trajectory_views_keep_true_scale(dataset):
+    """Top view (x, y) and side view (distance from the z axis, z), both at equal scale: the
+    side view shows the real heights of TX/RX and the box (a 3-D view flattened them)."""
+    from sonarsim import geometry
+    from sonarsim.plot import _trajectory_figure
+
+    box = geometry.SceneBox(lo=(-0.2, -0.2, 0.0), hi=(0.2, 0.2, 0.3))
+    fig = _trajectory_figure(dataset, box)
+    ax_top, ax_side = fig.axes
+    assert ax_top.name == ax_side.name == "rectilinear"
+    assert ax_top.get_aspect() == ax_side.get_aspect() == 1.0
+    tx_top, tx_side = ax_top.collections[0].get_offsets(), ax_side.collections[0].get_offsets()
+    np.testing.assert_allclose(tx_top, dataset.tx[:, :2])
+    np.testing.assert_allclose(tx_side, np.c_[np.hypot(*dataset.tx[:, :2].T), dataset.tx[:, 2]])
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    FigureCanvasAgg(fig).draw()
+    z_lo, z_hi = ax_side.get_ylim()
+    assert z_lo <= 0.0 and z_hi >= 0.3 and z_hi >= dataset.tx[:, 2].max()
+    # equal scale: one metre is as long on screen along z as along the radius
+    to_px = ax_side.transData.transform
+    (x0, y0), (x1, y1) = to_px([0.0, 0.0]), to_px([0.1, 0.1])
+    assert abs((x1 - x0) - (y1 - y0)) < 0.01 * abs(x1 - x0)
+
+
+def test_bounce_energy_bars_are_linear_shares(transients):
+    """The bars are each bounce's share of the total energy on a linear axis."""
+    from sonarsim.plot_transients import _energy_figure, energy_per_bounce, energy_per_ping
+
+    fig = _energy_figure(transients, energy_per_ping(transients))
+    ax_bars = fig.axes[0]
+    assert ax_bars.get_yscale() == "linear"
+    heights = np.array([p.get_height() for p in ax_bars.patches])
+    e = energy_per_bounce(transients)
+    np.testing.assert_allclose(heights, 100 * e / e.sum(), rtol=1e-6)
+    assert heights.sum() == pytest.approx(100.0)
