@@ -25,7 +25,7 @@ _ORDER_PER_CELL = 16.0
 class ConeTracer:
     """Mixin of :class:`sonar_transient.SonarTransientIntegrator`: the TX-cone paths."""
 
-    def _trace(self, scene, hists, ctx, paths_per_pose, ray_stats=None):
+    def _trace(self, scene, sink, ctx, paths_per_pose, ray_stats=None):
         """The TX-cone paths of every pose, in launches of at most _TRACE_BATCH lanes:
         whole poses, or (beyond _TRACE_BATCH paths per pose) part of one pose's paths."""
         n_poses, P = ctx["n_poses"], paths_per_pose
@@ -39,8 +39,9 @@ class ConeTracer:
             batch = {"pose0": dr.opaque(mi.UInt32, pose0), "path0": dr.opaque(mi.UInt32, path0),
                      "n_paths": dr.opaque(mi.UInt32, n_paths)}
             order = self._coherent_order(ctx, batch, n_batch_poses, n_paths, P)
-            self._trace_lanes(scene, hists, ctx, paths_per_pose, batch, n_batch_poses * n_paths,
+            self._trace_lanes(scene, sink, ctx, paths_per_pose, batch, n_batch_poses * n_paths,
                               order, ray_stats)
+            sink.flush()
 
     @staticmethod
     def _path_rng(ctx, pose, path):
@@ -91,7 +92,7 @@ class ConeTracer:
         dr.eval(order)
         return order
 
-    def _trace_lanes(self, scene, hists, ctx, paths_per_pose, batch, n_lanes, order,
+    def _trace_lanes(self, scene, sink, ctx, paths_per_pose, batch, n_lanes, order,
                      ray_stats=None):
         """Trace the ``n_lanes`` paths of one batch, lane i taking batch path ``order[i]``
         (pose-major index into the batch; None: lane i takes path i)."""
@@ -116,16 +117,17 @@ class ConeTracer:
 
         p_tx = mi.Point3f(dr.gather(mi.Vector3f, ctx["tx"], pose))
         p_rx = mi.Point3f(dr.gather(mi.Vector3f, ctx["rx"], pose))
-        b_tx = dr.gather(mi.Vector3f, ctx["tx_dir"], pose)
-        b_rx = dr.gather(mi.Vector3f, ctx["rx_dir"], pose)
+        b_tx = dr.normalize(dr.gather(mi.Vector3f, ctx["tx_dir"], pose))
+        b_rx = dr.normalize(dr.gather(mi.Vector3f, ctx["rx_dir"], pose))
         intensity = self.amplitude == "intensity"
         guide = self._guide(scene) if self.max_bounces > 1 else None
 
         # Bounce 0: leave the TX in a direction drawn from its beam.
         u_pick = rng.next_float32()
         u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-        d_local, inv_pdf = self.tx_beam.sample(u_pick, u2, ctx["tx_c"])
-        beam = (self.tx_beam.gain if intensity else self.tx_beam.amplitude)(d_local.z, ctx["tx_c"])
+        tx_beam = ctx["tx_beam"]
+        d_local, inv_pdf = tx_beam.sample(u_pick, u2, ctx["tx_c"])
+        beam = (tx_beam.gain if intensity else tx_beam.amplitude)(d_local.z, ctx["tx_c"])
         ray = mi.Ray3f(p_tx, mi.Frame3f(b_tx).to_world(d_local))
         # intensity: b_T/pdf; pressure: a_T/pdf, completed by r/cosθ_i at the vertex
         throughput = beam * inv_pdf * weight
@@ -164,8 +166,7 @@ class ConeTracer:
                 if self.complex_output:
                     values = [value * dr.cos(phase), value * dr.sin(phase)]
                 if bounce == 0 or self.vertex_spread <= 0.0:
-                    for h, v in zip(hists, values):
-                        self._splat(h, v, length + dist, pose, slot, bounce, ctx, connect)
+                    sink.add(values, length + dist, pose, slot, bounce, connect)
                 else:
                     # Spread over a disk of radius ρ_s around the vertex in its tangent
                     # plane: L varies along the tangential gradient g of the last two
@@ -180,9 +181,8 @@ class ConeTracer:
                     ws = [dr.safe_sqrt(1.0 - t * t) for t in ts]
                     norm = 1.0 / dr.maximum(sum(ws[1:], ws[0]), 1e-12)
                     for t, wt in zip(ts, ws):
-                        for h, v in zip(hists, values):
-                            self._splat(h, v * wt * norm, length + dist + t * half_span, pose,
-                                        slot, bounce, ctx, connect)
+                        sink.add([v * wt * norm for v in values], length + dist + t * half_span,
+                                 pose, slot, bounce, connect)
 
             if bounce + 1 < self.max_bounces:
                 u_pick = rng.next_float32()

@@ -36,10 +36,10 @@ class PathVertices:
         c_rx = -dr.dot(w_rx, b_rx)
         if intensity:
             value = (throughput * albedo * dr.inv_pi * cos_out
-                     * self.rx_beam.gain(c_rx, ctx["rx_c"]) / dist2)
+                     * ctx["rx_beam"].gain(c_rx, ctx["rx_c"]) / dist2)
         else:
             value = (throughput * dr.sqrt(albedo * cos_in * cos_out) * (0.5 * dr.inv_pi)
-                     * self.rx_beam.amplitude(c_rx, ctx["rx_c"]) / dist)
+                     * ctx["rx_beam"].amplitude(c_rx, ctx["rx_c"]) / dist)
         connect = active & (dr.dot(n_geo, w_rx) > 0.0) & (value != 0.0)
         if ray_stats is not None:
             ray_stats["shadow"] = ray_stats.get("shadow", 0) + int(dr.count(connect)[0])
@@ -107,17 +107,64 @@ class PathVertices:
         eps = (1.0 + scale) * mi.math.RayEpsilon
         return mi.Ray3f(p + eps * d, d)
 
-    @staticmethod
-    def _splat(hist, value, length, pose, slot, bounce, ctx, active):
-        """Tent-splat ``value`` at ``length`` into the bins of (slot, pose, bounce)."""
-        u = (length - ctx["start"]) * ctx["inv_width"] - 0.5   # in bin-centre units
-        u = dr.clip(u, -2.0, mi.Float(ctx["n_bins"]) + 1.0)   # keep the int cast defined
-        j0f = dr.floor(u)
-        frac = u - j0f
-        j0 = mi.Int32(j0f)
-        base = slot * ctx["half_stride"] + pose * ctx["pose_stride"] + bounce * ctx["n_bins_u"]
-        for j, w in ((j0, 1.0 - frac), (j0 + 1, frac)):
-            ok = active & (j >= 0) & (j < ctx["n_bins"])
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, type(hist)(value * w), base + mi.UInt32(j),
-                              ok, mode=ctx["reduce_mode"])
 
+def _tent(length, pose, slot, bounce, ctx):
+    """The two bins (j0, j0 + 1) whose centres enclose ``length`` and their weights, as flat
+    indices into a [slots, N, B, T] buffer: [(index, weight, in-window mask), ...]."""
+    u = (length - ctx["start"]) * ctx["inv_width"] - 0.5   # in bin-centre units
+    u = dr.clip(u, -2.0, mi.Float(ctx["n_bins"]) + 1.0)   # keep the int cast defined
+    j0f = dr.floor(dr.detach(u))
+    frac = u - j0f
+    j0 = mi.Int32(j0f)
+    base = slot * ctx["half_stride"] + pose * ctx["pose_stride"] + bounce * ctx["n_bins_u"]
+    return [(base + mi.UInt32(j), w, (j >= 0) & (j < ctx["n_bins"]))
+            for j, w in ((j0, 1.0 - frac), (j0 + 1, frac))]
+
+
+class HistogramSink:
+    """Where contributions go in a forward render: a tent splat into the histogram buffers
+    ``hists`` (one per part: the real one, and the imaginary one for complex output)."""
+
+    def __init__(self, hists, ctx):
+        self.hists, self.ctx = hists, ctx
+
+    def add(self, values, length, pose, slot, bounce, active):
+        """Splat ``values`` (one per buffer) at path length ``length`` (m) into the bins of
+        (slot, pose, bounce); lanes where ``active`` is False add nothing."""
+        for index, weight, inside in _tent(length, pose, slot, bounce, self.ctx):
+            ok = active & inside
+            for hist, value in zip(self.hists, values):
+                dr.scatter_reduce(dr.ReduceOp.Add, hist, type(hist)(value * weight), index, ok,
+                                  mode=self.ctx["reduce_mode"])
+
+    def flush(self):
+        """End of a launch (nothing to do: the buffers are evaluated by the caller)."""
+
+
+class AdjointSink:
+    """Where contributions go in a reverse-mode replay (path replay): each one is weighted
+    by the adjoint histogram ``grads`` (one per part, laid out as the histograms) at its
+    tent bins, and :meth:`flush` back-propagates the sum of a launch's lanes. The launch's
+    derivative graph lives only until that flush, whatever the path depth."""
+
+    def __init__(self, grads, ctx):
+        self.grads, self.ctx = grads, ctx
+        self.total = None
+
+    def add(self, values, length, pose, slot, bounce, active):
+        for index, weight, inside in _tent(length, pose, slot, bounce, self.ctx):
+            ok = active & inside
+            for grad, value in zip(self.grads, values):
+                adjoint = dr.gather(mi.Float, grad, index, ok)
+                term = dr.select(ok, value * (weight * adjoint), 0.0)
+                self.total = term if self.total is None else self.total + term
+
+    def flush(self):
+        """Back-propagate ⟨adjoint, contributions⟩ of the launch into the scene parameters."""
+        total, self.total = self.total, None
+        if total is None or not dr.grad_enabled(total):
+            return
+        dr.set_grad(total, 1.0)
+        dr.enqueue(dr.ADMode.Backward, total)
+        dr.traverse(dr.ADMode.Backward)
+        dr.eval()

@@ -17,25 +17,28 @@ class SurfaceEstimator:
     """Mixin of :class:`sonar_transient.SonarTransientIntegrator`: bounce 1 over the surfaces
     and the paths of bounces >= 2 that start at its points."""
 
-    def _surface(self, scene, hists, ctx, roi):
+    def _surface(self, scene, sink, ctx, roi):
         """Bounce 1 by stratified area quadrature: one jittered point per stratum and half."""
-        strata, arrays = self.surface_strata(scene, roi)
-        if arrays.n_tri:
-            self._surface_lanes(scene, hists, ctx, arrays.n_tri, arrays.triangle_points,
-                                lambda k: dr.gather(mi.UInt32, arrays.tri["sid"], k))
-        for index, item in enumerate(arrays.parametric):
-            self._surface_lanes(scene, hists, ctx, len(item[0]),
-                                lambda k, u, it=item: _parametric_points(it, k, u),
+        lanes = self.surface_strata(scene, roi)[1]
+        for mesh in lanes.meshes:
+            rho = shape_albedo(mesh.shape)
+            self._surface_lanes(scene, sink, ctx, len(mesh),
+                                lambda k, u, m=mesh, r=rho: m.points(k, u, r), mesh.stable_id)
+        for index, item in enumerate(lanes.parametric):
+            rho = shape_albedo(item[1])
+            self._surface_lanes(scene, sink, ctx, len(item[0]),
+                                lambda k, u, it=item, r=rho: _parametric_points(it, k, u, r),
                                 lambda k, i=index: k ^ mi.UInt32((0x7F4A7C15 * (i + 1)) & 0xFFFFFFFF))
 
-    def _surface_lanes(self, scene, hists, ctx, n_strata, points, stable_id):
+    def _surface_lanes(self, scene, sink, ctx, n_strata, points, stable_id):
         """Launch the lanes (pose, half, stratum), in batches of < 2³¹ lanes."""
         per_batch = max(1, (2**31) // (2 * n_strata))
         for first in range(0, ctx["n_poses"], per_batch):
             count = min(per_batch, ctx["n_poses"] - first)
-            self._surface_batch(scene, hists, ctx, n_strata, points, stable_id, first, count)
+            self._surface_batch(scene, sink, ctx, n_strata, points, stable_id, first, count)
+            sink.flush()
 
-    def _surface_batch(self, scene, hists, ctx, n_strata, points, stable_id, first, count):
+    def _surface_batch(self, scene, sink, ctx, n_strata, points, stable_id, first, count):
         UInt32, Float = mi.UInt32, mi.Float
         m = dr.opaque(UInt32, n_strata)
         lane = dr.arange(UInt32, count * 2 * n_strata)
@@ -52,8 +55,8 @@ class SurfaceEstimator:
             n_sh = n_geo
         p_tx = mi.Point3f(dr.gather(mi.Vector3f, ctx["tx"], pose))
         p_rx = mi.Point3f(dr.gather(mi.Vector3f, ctx["rx"], pose))
-        b_tx = dr.gather(mi.Vector3f, ctx["tx_dir"], pose)
-        b_rx = dr.gather(mi.Vector3f, ctx["rx_dir"], pose)
+        b_tx = dr.normalize(dr.gather(mi.Vector3f, ctx["tx_dir"], pose))
+        b_rx = dr.normalize(dr.gather(mi.Vector3f, ctx["rx_dir"], pose))
         to_tx, to_rx = p_tx - p, p_rx - p
         r_t, r_r = dr.norm(to_tx), dr.norm(to_rx)
         w_t, w_r = to_tx / r_t, to_rx / r_r
@@ -74,13 +77,14 @@ class SurfaceEstimator:
         active &= (hi_len > ctx["start"] - ctx["margin"]) & (lo_len < ctx["end"] + ctx["margin"])
         ct, cr = -dr.dot(w_t, b_tx), -dr.dot(w_r, b_rx)
         weight = area * (1.0 if ctx["halves"] else 0.5)
+        tx_beam, rx_beam = ctx["tx_beam"], ctx["rx_beam"]
         if self.amplitude == "intensity":
-            g_t = self.tx_beam.gain(ct, ctx["tx_c"])
-            value = (g_t * self.rx_beam.gain(cr, ctx["rx_c"])
+            g_t = tx_beam.gain(ct, ctx["tx_c"])
+            value = (g_t * rx_beam.gain(cr, ctx["rx_c"])
                      * rho * dr.inv_pi * cos_i * cos_o / (r_t * r_t * r_r * r_r))
         else:   # the seed's Eq. (1): b_T b_R σ / (2π r_T r_R), σ = sqrt(ρ cosθ_i cosθ_o)
-            g_t = self.tx_beam.amplitude(ct, ctx["tx_c"])
-            value = (g_t * self.rx_beam.amplitude(cr, ctx["rx_c"])
+            g_t = tx_beam.amplitude(ct, ctx["tx_c"])
+            value = (g_t * rx_beam.amplitude(cr, ctx["rx_c"])
                      * dr.sqrt(rho * cos_i * cos_o) * (0.5 * dr.inv_pi) / (r_t * r_r))
         value = value * weight
         active &= value != 0.0
@@ -101,7 +105,7 @@ class SurfaceEstimator:
         if self.max_bounces > 1:
             k = self.facet_paths
             for j in range(k):   # k continuations per point, the first direction stratified
-                self._facet_paths(scene, hists, ctx, pose, half, p, n_geo, n_sh, rho, cos_i,
+                self._facet_paths(scene, sink, ctx, pose, half, p, n_geo, n_sh, rho, cos_i,
                                   r_t, g_t * (weight / k), phase, corners, lit,
                                   key ^ (0x632BE5AB * j & 0xFFFFFFFF), sid, p_tx, p_rx, b_rx,
                                   (j, k))
@@ -110,8 +114,7 @@ class SurfaceEstimator:
         if self.complex_output:
             values = [value * dr.cos(phase), value * dr.sin(phase)]
         if corners is None:           # analytic shapes: a point splat
-            for h, v in zip(hists, values):
-                self._splat(h, v, length, pose, slot, 0, ctx, active)
+            sink.add(values, length, pose, slot, 0, active)
             return
         # Flat facets: path length is linear over the facet to within s²/(2r); the
         # facet's area maps to the triangular density of L between its corners' lengths
@@ -121,10 +124,9 @@ class SurfaceEstimator:
         shift = Float(mi.sample_tea_32(key, sid ^ 0x80000000)[0] >> 8) * (1.0 / 16777216.0)
         values = [v * (1.0 / m) for v in values]
         for li in self._quantiles(ls, shift, m):
-            for h, v in zip(hists, values):
-                self._splat(h, v, li, pose, slot, 0, ctx, active)
+            sink.add(values, li, pose, slot, 0, active)
 
-    def _facet_paths(self, scene, hists, ctx, pose, half, p, n_geo, n_sh, albedo, cos_in, r_t,
+    def _facet_paths(self, scene, sink, ctx, pose, half, p, n_geo, n_sh, albedo, cos_in, r_t,
                      tx_weight, phase, corners, active, key, sid, p_tx, p_rx, b_rx,
                      stratum=(0, 1)):
         """Bounces 2…B from the surface points: one path per lit stratum point x₁.
@@ -202,8 +204,7 @@ class SurfaceEstimator:
                 offsets = [t * half_span for t in ts]
                 scales = [w * (n_q / total) for w in ws]
             for q, off, sc in zip(quantiles, offsets, scales):
-                for h, v in zip(hists, values):
-                    self._splat(h, v * sc, q + rest + off, pose, slot, bounce, ctx, connect)
+                sink.add([v * sc for v in values], q + rest + off, pose, slot, bounce, connect)
 
     @staticmethod
     def _quantiles(ls, shift, m):
@@ -217,27 +218,87 @@ class SurfaceEstimator:
         out = []
         for i in range(m):
             q = (i + shift) * (1.0 / m)
-            lo = a + dr.safe_sqrt(q * span * (c - a))
-            hi = b - dr.safe_sqrt((1.0 - q) * span * (b - c))
+            lo = a + _sqrt_pos(q * span * (c - a))
+            hi = b - _sqrt_pos((1.0 - q) * span * (b - c))
             out.append(dr.select(q < f_c, lo, hi))
         return out
 
 
-class _StrataArrays:
-    """The strata of :mod:`._surface_samples` as Dr.Jit arrays (gathered per lane)."""
+def _sqrt_pos(x):
+    """sqrt(max(x, 1e-30)): safe_sqrt with a finite derivative where x reaches 0."""
+    return dr.sqrt(dr.maximum(x, 1e-30))
+
+
+def shape_albedo(shape):
+    """The diffuse reflectance of ``shape``'s BSDF as a Dr.Jit Float of width 1 (textures:
+    at uv = (0.5, 0.5)), differentiable with respect to the BSDF's parameters."""
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.uv = mi.Point2f(0.5, 0.5)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    value = shape.bsdf().eval_diffuse_reflectance(si, True)
+    rho = mi.Float(value[0]) if dr.size_v(value) != 0 else mi.Float(value)
+    if not dr.grad_enabled(rho):
+        dr.make_opaque(rho)            # a value, not a literal: no recompilation per albedo
+    return rho
+
+
+class _MeshLanes:
+    """The strata of one mesh (:class:`._surface_samples.MeshStrata`) as Dr.Jit arrays; the
+    geometry of a stratum is computed per lane from the mesh's current vertex buffers, so
+    it follows (and is differentiable with respect to) ``vertex_positions``."""
 
     def __init__(self, strata):
-        t = strata.triangles
-        self.n_tri = 0 if t is None else len(t)
-        if self.n_tri:
-            v = lambda a: mi.Vector3f(*(mi.Float(np.ascontiguousarray(a[:, i])) for i in range(3)))
-            self.tri = {key: v(getattr(t, key)) for key in
-                        ("p0", "e1", "e2", "n_geo", "n0", "dn1", "dn2")}
-            self.tri["rho"] = mi.Float(t.rho)
-            self.tri["area"] = mi.Float(t.area)
-            self.tri["sid"] = mi.UInt32(t.sid)
-            self.tri["phase"] = mi.Float(t.phase if t.phase is not None
-                                         else np.zeros(1, np.float32))
+        self.shape = strata.shape
+        self.n = len(strata)
+        self.tri = mi.UInt32(strata.tri)
+        self.beta1, self.beta2 = mi.Float(strata.beta1), mi.Float(strata.beta2)
+        self.scale, self.inv_n2 = mi.Float(strata.scale), mi.Float(strata.inv_n2)
+        self.sid = mi.UInt32(strata.sid)
+        self.phase = None if strata.phase is None else mi.Float(strata.phase)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def stable_id(self, k):
+        return dr.gather(mi.UInt32, self.sid, k)
+
+    def points(self, k, u, rho):
+        """(point, geometric normal, shading normal, albedo, area, phase, corners) of a
+        uniform point ``u`` of stratum ``k`` (m, m²)."""
+        shape = self.shape
+        face = dr.gather(mi.UInt32, self.tri, k)
+        faces = shape.faces_buffer()
+        idx = [dr.gather(mi.UInt32, faces, face * 3 + j) for j in range(3)]
+        vp = shape.vertex_positions_buffer()
+        a, b, c = (dr.gather(mi.Point3f, vp, i) for i in idx)
+        ea, eb = b - a, c - a
+        beta1, beta2 = dr.gather(mi.Float, self.beta1, k), dr.gather(mi.Float, self.beta2, k)
+        scale = dr.gather(mi.Float, self.scale, k)
+        bary = mi.warp.square_to_uniform_triangle(u)
+        w1, w2 = beta1 + scale * bary.x, beta2 + scale * bary.y     # parent barycentrics
+        p = a + w1 * ea + w2 * eb
+        cross = dr.cross(ea, eb)
+        double_area = dr.norm(cross)
+        n_geo = cross / double_area
+        area = 0.5 * double_area * dr.gather(mi.Float, self.inv_n2, k)
+        if shape.has_vertex_normals():
+            vn = shape.vertex_normals_buffer()
+            na, nb, nc = (dr.gather(mi.Vector3f, vn, i) for i in idx)
+            n_sh = dr.normalize(na + w1 * (nb - na) + w2 * (nc - na))
+        else:
+            n_sh = n_geo
+        phase = mi.Float(0.0) if self.phase is None else dr.gather(mi.Float, self.phase, k)
+        p0 = a + beta1 * ea + beta2 * eb
+        corners = (p0, p0 + scale * ea, p0 + scale * eb)
+        return p, n_geo, n_sh, rho, area, phase, corners
+
+
+class StrataLanes:
+    """The surface quadrature of a scene as Dr.Jit arrays: :class:`_MeshLanes` per mesh
+    and the cell grids of the analytic shapes."""
+
+    def __init__(self, strata):
+        self.meshes = [_MeshLanes(m) for m in strata.meshes]
         self.parametric = []
         for ps in strata.parametric:
             phase = ps.phase if ps.phase is not None else np.zeros(1, np.float32)
@@ -245,30 +306,16 @@ class _StrataArrays:
                                     dr.opaque(mi.Float, 1.0 / ps.n_u),
                                     dr.opaque(mi.Float, 1.0 / ps.n_v),
                                     dr.opaque(mi.Float, 1.0 / (ps.n_u * ps.n_v)),
-                                    dr.opaque(mi.Float, ps.rho), mi.Float(phase),
-                                    ps.phase is not None))
-
-    def triangle_points(self, k, u):
-        t = self.tri
-        g = lambda key: dr.gather(mi.Vector3f, t[key], k)
-        b = mi.warp.square_to_uniform_triangle(u)
-        p = mi.Point3f(g("p0") + b.x * g("e1") + b.y * g("e2"))
-        n_sh = dr.normalize(g("n0") + b.x * g("dn1") + b.y * g("dn2"))
-        phase = dr.gather(mi.Float, t["phase"], k) if len(t["phase"]) > 1 else mi.Float(0.0)
-        p0 = mi.Point3f(g("p0"))
-        corners = (p0, p0 + g("e1"), p0 + g("e2"))
-        return (p, g("n_geo"), n_sh, dr.gather(mi.Float, t["rho"], k),
-                dr.gather(mi.Float, t["area"], k), phase, corners)
+                                    mi.Float(phase), ps.phase is not None))
 
 
-def _parametric_points(item, k, u):
+def _parametric_points(item, k, u, rho):
     """A point of stratum k of an analytic shape: ``shape.sample_position`` of the cell."""
-    _, shape, n_v, inv_nu, inv_nv, inv_cells, rho, phases, has_phase = item
+    _, shape, n_v, inv_nu, inv_nv, inv_cells, phases, has_phase = item
     iu = k // n_v
     iv = k - iu * n_v
     uv = mi.Point2f((mi.Float(iu) + u.x) * inv_nu, (mi.Float(iv) + u.y) * inv_nv)
     ps = shape.sample_position(0.0, uv)
     area = inv_cells / ps.pdf                 # cell measure / area density of the map
     phase = dr.gather(mi.Float, phases, k) if has_phase else mi.Float(0.0)
-    return ps.p, ps.n, ps.n, mi.Float(rho), area, phase, None
-
+    return ps.p, ps.n, ps.n, rho, area, phase, None

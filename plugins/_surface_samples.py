@@ -5,10 +5,11 @@ quadrature over every shape of a Mitsuba scene, in NumPy.
 
 * **Triangle meshes.** Triangle (a, b, c) with longest edge E is cut into n² congruent
   sub-triangles, n = ⌈E / spacing⌉ (n(n+1)/2 "up" and n(n−1)/2 "down" ones, each of area
-  A/n²). A stratum is stored as a corner P0 and two edge vectors E1, E2 (a point is
-  P0 + b1·E1 + b2·E2 for barycentric (b1, b2) of the sub-triangle), the geometric normal,
-  the shading normal as an affine function of (b1, b2) (N0 + b1·DN1 + b2·DN2, from the
-  mesh's vertex normals; the geometric normal where it has none), the albedo and the area.
+  A/n²). Only the *topology* is stored here, per mesh: for each stratum the face index, the
+  parent barycentrics (β1, β2) of its corner and the signed scale ±1/n of its edges. The
+  geometry (corner P0 = a + β1·(b − a) + β2·(c − a), edges ±(b − a)/n and ±(c − a)/n, normals,
+  area A/n²) is computed per lane in Dr.Jit from the mesh's vertex buffers
+  (:mod:`._surface_estimator`), so it is differentiable with respect to the vertex positions.
 * **Other shapes** (Mitsuba's analytic ``rectangle``, ``sphere``, ``disk``, ...): a grid of
   n_u × n_v cells of the unit square that ``shape.sample_position`` maps onto the surface;
   n_u, n_v = ⌈length of the mapped mid-line / spacing⌉. A sample's area weight is
@@ -32,22 +33,19 @@ import numpy as np
 
 
 @dataclass
-class TriangleStrata:
-    """Flat sub-triangle strata: float32 arrays [M, 3] (vectors) or [M] (scalars)."""
-    p0: np.ndarray
-    e1: np.ndarray
-    e2: np.ndarray
-    n_geo: np.ndarray
-    n0: np.ndarray
-    dn1: np.ndarray
-    dn2: np.ndarray
-    rho: np.ndarray
-    area: np.ndarray
-    sid: np.ndarray            # uint32 [M]: stable stratum id (seeds its random numbers)
+class MeshStrata:
+    """The strata of one triangle mesh: arrays [M] (topology; positions are the mesh's)."""
+    shape: object              # the Mitsuba mesh
+    tri: np.ndarray            # uint32: face index
+    beta1: np.ndarray          # float32: parent barycentric of the stratum corner along b − a
+    beta2: np.ndarray          # float32: ... along c − a
+    scale: np.ndarray          # float32: ±1/n (down sub-triangles negative)
+    inv_n2: np.ndarray         # float32: 1/n² (the stratum's share of the face area)
+    sid: np.ndarray            # uint32: stable stratum id (seeds its random numbers)
     phase: np.ndarray | None   # radians [M] (coherent mode) or None
 
     def __len__(self) -> int:
-        return len(self.area)
+        return len(self.tri)
 
 
 @dataclass
@@ -65,7 +63,7 @@ class ParametricStrata:
 
 @dataclass
 class SurfaceStrata:
-    triangles: TriangleStrata | None
+    meshes: list               # MeshStrata per mesh with strata
     parametric: list
     spacing: float
     speckle_spacing: float | None
@@ -73,8 +71,7 @@ class SurfaceStrata:
 
     @property
     def count(self) -> int:
-        return (len(self.triangles) if self.triangles is not None else 0) + sum(
-            len(p) for p in self.parametric)
+        return sum(len(m) for m in self.meshes) + sum(len(p) for p in self.parametric)
 
 
 def _grid(n: int, i0: int = 0, i1: int | None = None, j0: int = 0, j1: int | None = None):
@@ -118,19 +115,17 @@ def _cell_phases(rng, n_cells: int) -> np.ndarray:
     return (2 * np.pi * rng.random(n_cells)).astype(np.float32)
 
 
-def mesh_strata(mi, shape, spacing: float, rho: float, speckle_spacing: float | None,
-                rng, roi=None, id_offset: int = 0) -> TriangleStrata:
+def mesh_strata(mi, shape, spacing: float, speckle_spacing: float | None,
+                rng, roi=None, id_offset: int = 0) -> MeshStrata:
+    """The strata of the triangle mesh ``shape`` (spacing in m; see the module doc)."""
     v = np.asarray(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
     f = np.asarray(shape.faces_buffer(), np.int64).reshape(-1, 3)
-    normals = None
-    if shape.has_vertex_normals():
-        normals = np.asarray(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     cross = np.cross(b - a, c - a)
     double_area = np.linalg.norm(cross, axis=1)
     keep = double_area > 0
-    f, a, b, c, cross, double_area = f[keep], a[keep], b[keep], c[keep], cross[keep], double_area[keep]
-    n_geo_tri = cross / double_area[:, None]
+    face_index = np.flatnonzero(keep)
+    f, a, b, c = f[keep], a[keep], b[keep], c[keep]
     edge = np.maximum(np.maximum(np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1)),
                       np.linalg.norm(a - c, axis=1))
     if speckle_spacing is not None:
@@ -167,20 +162,6 @@ def mesh_strata(mi, shape, spacing: float, rho: float, speckle_spacing: float | 
     # parent barycentrics (β1 along b − a, β2 along c − a) of the stratum corner
     beta1 = (i + down) / n
     beta2 = (j + down) / n
-    ea, eb = (b - a)[tri], (c - a)[tri]
-    p0 = a[tri] + beta1[:, None] * ea + beta2[:, None] * eb
-    e1 = (sgn / n)[:, None] * ea
-    e2 = (sgn / n)[:, None] * eb
-    ng = n_geo_tri[tri]
-    if normals is not None:
-        na, nb, nc = normals[f[tri, 0]], normals[f[tri, 1]], normals[f[tri, 2]]
-        dna, dnb = nb - na, nc - na
-        n0 = na + beta1[:, None] * dna + beta2[:, None] * dnb
-        dn1 = (sgn / n)[:, None] * dna
-        dn2 = (sgn / n)[:, None] * dnb
-    else:
-        n0, dn1, dn2 = ng, np.zeros_like(ng), np.zeros_like(ng)
-    area = (double_area[tri] / 2) / n ** 2
     phase = None
     if speckle_spacing is not None:
         nc_ = n_cell[tri]
@@ -192,9 +173,8 @@ def mesh_strata(mi, shape, spacing: float, rho: float, speckle_spacing: float | 
         local = (ci * nc_ + cj) * 2 + cdown          # 2·nc² slots per triangle
         phase = phases[cell_offset[tri] + local.astype(np.int64)]
     f32 = lambda x: np.ascontiguousarray(x, np.float32)
-    return TriangleStrata(f32(p0), f32(e1), f32(e2), f32(ng), f32(n0), f32(dn1), f32(dn2),
-                          np.full(len(tri), rho, np.float32), f32(area),
-                          sid.astype(np.uint32), phase)
+    return MeshStrata(shape, np.ascontiguousarray(face_index[tri], np.uint32), f32(beta1),
+                      f32(beta2), f32(sgn / n), f32(1.0 / n ** 2), sid.astype(np.uint32), phase)
 
 
 def _mid_line_length(mi, shape, axis: int, n: int = 65) -> float:
@@ -230,23 +210,18 @@ def build(mi, scene, spacing: float, speckle_spacing: float | None = None,
     ``roi``: a box [[x0, y0, z0], [x1, y1, z1]] (m); finely subdivided triangles keep only
     the strata near it (a stratum's id and random numbers do not depend on the clipping).
     """
-    tri_parts, parametric = [], []
+    meshes, parametric = [], []
     for index, shape in enumerate(scene.shapes()):
         rho = _albedo(mi, shape)
         if rho <= 0:
             continue
         rng = np.random.default_rng([int(speckle_seed), index])
         if shape.is_mesh():
-            tri_parts.append(mesh_strata(mi, shape, spacing, rho, speckle_spacing, rng, roi,
-                                         index * 0x9E3779B9))
+            strata = mesh_strata(mi, shape, spacing, speckle_spacing, rng, roi,
+                                 index * 0x9E3779B9)
+            if len(strata):
+                meshes.append(strata)
         else:
             parametric.append(parametric_strata(mi, shape, spacing, rho, speckle_spacing, rng))
-    triangles = None
-    if tri_parts:
-        fields = TriangleStrata.__dataclass_fields__
-        triangles = TriangleStrata(**{
-            key: (None if any(getattr(t, key) is None for t in tri_parts)
-                  else np.concatenate([getattr(t, key) for t in tri_parts]))
-            for key in fields})
-    return SurfaceStrata(triangles, parametric, float(spacing), speckle_spacing,
+    return SurfaceStrata(meshes, parametric, float(spacing), speckle_spacing,
                          None if roi is None else np.asarray(roi, np.float64))

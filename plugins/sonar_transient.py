@@ -55,7 +55,8 @@ import numpy as np
 from ._beams import BEAM_KINDS, Beam, piston_ka  # noqa: F401  (re-exported)
 from ._cone_tracer import ConeTracer
 from ._path_vertex import PathVertices
-from ._surface_estimator import SurfaceEstimator, _StrataArrays
+from ._path_vertex import AdjointSink, HistogramSink
+from ._surface_estimator import StrataLanes, SurfaceEstimator
 
 PLUGIN_NAME = "sonar_transient"
 VARIANT = mi.variant()   # the variant this module's class was built for
@@ -149,21 +150,120 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
                 f"tx_beam={self.tx_beam.describe()}, rx_beam={self.rx_beam.describe()}, "
                 f"bounce1={self.bounce1}, amplitude={self.amplitude}]")
 
+    # ------------------------------------------------------------------ mi.render
     def render(self, scene, sensor=None, seed=0, spp=0, develop=True, evaluate=True):
-        raise RuntimeError("sonar_transient renders histograms: call "
-                           "integrator.render_transients(scene, tx, rx, ...)")
+        """The histograms of a ``sonar`` sensor (``mi.render``): TensorXf (B, T) for one pose,
+        (N, B, T) for a sensor holding N poses; a last axis [real, imag] for 'coherent'.
+
+        B = ``max_bounces``, T = the ``sonar_film``'s ``temporal_bins``. Same estimator and
+        random numbers as :meth:`render_transients` with ``seed`` and ``pose_offset=0``.
+        ``spp``: TX-cone paths per pose (0: the sensor's sampler ``sample_count``); used by
+        bounce1='cone' only. Gradients: through ``mi.render(scene, params)``
+        (:meth:`render_backward`, :meth:`render_forward`); this primal tracks none.
+        """
+        sensor = _sonar_sensor(scene, sensor)
+        with dr.suspend_grad():
+            ctx, roi, paths = self._sensor_context(scene, sensor, seed, spp)
+            buf_type = mi.Float64 if self.float64 else mi.Float
+            hists = [dr.zeros(buf_type, ctx["n_hist"]) for _ in range(ctx["parts"])]
+            self._histograms(scene, HistogramSink(hists, ctx), ctx, roi, paths)
+            out = self._tensor(ctx, [mi.Float(h) for h in hists])
+            if evaluate:
+                dr.eval(out)
+        sensor.film().histogram = out
+        return out if develop else mi.TensorXf()
+
+    def render_forward(self, scene, params=None, sensor=0, seed=0, spp=0):
+        """Forward-mode derivative of :meth:`render` (the gradients set on the scene's
+        parameters, propagated to the histograms): a TensorXf shaped as ``render``'s."""
+        sensor = _sonar_sensor(scene, sensor)
+        with dr.resume_grad():
+            ctx, roi, paths = self._sensor_context(scene, sensor, seed, spp)
+            hists = [dr.zeros(mi.Float, ctx["n_hist"]) for _ in range(ctx["parts"])]
+            ctx["reduce_mode"] = dr.ReduceMode.Auto
+            self._histograms(scene, HistogramSink(hists, ctx), ctx, roi, paths)
+            out = self._tensor(ctx, hists)
+            dr.forward_to(out)
+            return mi.TensorXf(dr.grad(out))
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """Reverse-mode derivative of :meth:`render` by path replay: every path of the
+        primal is traced again with the same random numbers, and each contribution,
+        weighted by ``grad_in`` (shaped as ``render``'s output) at its tent bins, is
+        back-propagated into the scene parameters launch by launch
+        (:class:`._path_vertex.AdjointSink`; docs/differentiable.md)."""
+        sensor = _sonar_sensor(scene, sensor)
+        with dr.resume_grad():
+            ctx, roi, paths = self._sensor_context(scene, sensor, seed, spp)
+            flat = mi.Float(dr.detach(grad_in).array)
+            if ctx["parts"] == 2:      # [..., T, 2]: real and imaginary parts interleaved
+                half = dr.arange(mi.UInt32, ctx["n_hist"]) * 2
+                grads = [dr.gather(mi.Float, flat, half), dr.gather(mi.Float, flat, half + 1)]
+            else:
+                grads = [flat]
+            self._histograms(scene, AdjointSink(grads, ctx), ctx, roi, paths)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        raise RuntimeError("sonar_transient has no image mode; use render_transients()")
+        raise RuntimeError("sonar_transient has no image mode: render a 'sonar' sensor "
+                           "(mi.render) or call render_transients()")
+
+    def _sensor_context(self, scene, sensor, seed, spp):
+        """(context, region of interest, TX-cone paths per pose) of a ``sonar`` sensor."""
+        tx, rx, tx_dir, rx_dir, n = sensor.pose_vectors()
+        film = sensor.film()
+        start, width, n_bins = film.window()
+        paths = int(spp) if spp else int(sensor.sampler().sample_count())
+        seed = _as_seed(seed)
+        self._check_launch(n, paths, n_bins, False)
+        beams = (sensor.tx_beam or self.tx_beam, sensor.rx_beam or self.rx_beam)
+        ctx = self._context_arrays(tx, rx, tx_dir, rx_dir, n, start, width, n_bins, seed, 0,
+                                   False, dr.ReduceMode.Local, beams)
+        roi = None
+        if self.bounce1 == "surface":
+            arrays = [np.asarray(dr.detach(v), np.float64).reshape(3, -1).T
+                      for v in (ctx["tx"], ctx["rx"], ctx["tx_dir"], ctx["rx_dir"])]
+            arrays[2:] = [a / np.linalg.norm(a, axis=1, keepdims=True) for a in arrays[2:]]
+            end = float(dr.detach(start)[0]) + (n_bins + 1) * float(dr.detach(width)[0])
+            roi = self._region(*arrays, end, beams)
+        return ctx, roi, paths
+
+    def _tensor(self, ctx, hists):
+        """The histograms [N·B·T] (one per part) as render()'s TensorXf."""
+        n, shape = ctx["n_poses"], (self.max_bounces, int(ctx["n_bins_value"]))
+        shape = shape if n == 1 else (n,) + shape
+        if len(hists) == 1:
+            return mi.TensorXf(hists[0], shape)
+        both = dr.zeros(mi.Float, 2 * ctx["n_hist"])
+        index = dr.arange(mi.UInt32, ctx["n_hist"]) * 2
+        dr.scatter(both, hists[0], index)
+        dr.scatter(both, hists[1], index + 1)
+        return mi.TensorXf(both, shape + (2,))
+
+    def _histograms(self, scene, sink, ctx, roi, paths_per_pose, ray_stats=None):
+        """Every contribution of the poses of ``ctx`` into ``sink``: the surface estimator
+        (bounce 1, and bounces >= 2 from its points) or the TX-cone tracer."""
+        if self.bounce1 == "surface":
+            self._surface(scene, sink, ctx, roi)
+        else:
+            self._trace(scene, sink, ctx, paths_per_pose, ray_stats)
+
+    def _check_launch(self, n, paths_per_pose, n_bins, halves):
+        n_hist = (2 if halves else 1) * n * self.max_bounces * n_bins
+        if n * paths_per_pose >= 2**32 or n_hist >= 2**32:
+            raise ValueError("sonar_transient: too many lanes or bins for one launch "
+                             "(< 2^32 each); render fewer poses at a time")
 
     # ------------------------------------------------------------------ public API
     def surface_strata(self, scene, roi=None):
-        """The surface quadrature of ``scene``: (strata, Dr.Jit arrays), built once per scene
-        and settings; ``roi`` [2, 3] (m) limits large triangles to the strata near that box
-        (a cached set whose box contains ``roi`` is reused)."""
+        """The surface quadrature of ``scene``: (strata, Dr.Jit arrays), built once per scene,
+        geometry and settings; ``roi`` [2, 3] (m) limits large triangles to the strata near
+        that box (a cached set whose box contains ``roi`` is reused). The strata's topology
+        is rebuilt when a shape's vertices or extent change (e.g. after
+        ``SceneParameters.update()``); their positions are always the shapes' current ones."""
         from . import _surface_samples
         speckle = self.speckle_spacing if self.amplitude == "coherent" else None
-        key = (id(scene), self.surface_spacing, speckle, self.speckle_seed)
+        key = (id(scene), self.surface_spacing, speckle, self.speckle_seed,
+               _geometry_fingerprint(scene))
         entry = self._strata_cache.get(key)
         if entry is not None and roi is not None and entry[0].roi is not None:
             cached = entry[0].roi
@@ -174,17 +274,18 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             strata = _surface_samples.build(mi, scene, self.surface_spacing, speckle,
                                             self.speckle_seed, roi)
             # one entry; holding the scene keeps its id from being reused meanwhile
-            entry = (strata, _StrataArrays(strata), scene)
+            entry = (strata, StrataLanes(strata), scene)
             self._strata_cache = {key: entry}
         return entry[0], entry[1]
 
-    def _region(self, tx, rx, tx_dir, rx_dir, path_end: float) -> np.ndarray:
+    def _region(self, tx, rx, tx_dir, rx_dir, path_end: float, beams) -> np.ndarray:
         """A box [2, 3] (m) holding every point that can reach the window of some pose:
-        path length ≤ path_end (an ellipsoid's box) and inside both cone beams."""
+        path length ≤ path_end (an ellipsoid's box) and inside both cone beams
+        (``beams``: the TX and RX :class:`._beams.Beam`)."""
         half = path_end / 2.0
         mid = (tx + rx) / 2.0
         lo, hi = mid - half, mid + half
-        for beam, apex, axis in ((self.tx_beam, tx, tx_dir), (self.rx_beam, rx, rx_dir)):
+        for beam, apex, axis in ((beams[0], tx, tx_dir), (beams[1], rx, rx_dir)):
             if beam.kind != "cone" or beam.beamwidth_deg >= 120.0:
                 continue
             radius = path_end * math.tan(math.radians(beam.beamwidth_deg) / 2.0)
@@ -232,27 +333,23 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         traces = self.bounce1 == "cone"     # else bounces >= 2 start at the surface points
         if halves and traces and paths_per_pose < 2:
             raise ValueError("sonar_transient: halves=True needs paths_per_pose >= 2")
-        n_slots = 2 if halves else 1
-        n_hist = n_slots * n * self.max_bounces * n_bins
-        if n * paths_per_pose >= 2**32 or n_hist >= 2**32:
-            raise ValueError("sonar_transient: too many lanes or bins for one launch "
-                             "(< 2^32 each); render fewer poses at a time")
+        self._check_launch(n, paths_per_pose, n_bins, halves)
         shape = ((2,) if halves else ()) + (n, self.max_bounces, n_bins)
         dtype = np.complex64 if self.complex_output else np.float32
         if n == 0:
             return np.zeros(shape, dtype)
-        buf_type = mi.Float64 if self.float64 else mi.Float
-        parts = 2 if self.complex_output else 1
-        hists = [dr.zeros(buf_type, n_hist) for _ in range(parts)]
         ctx = self._context(tx, rx, tx_dir, rx_dir, float(path_start), float(bin_width),
                             n_bins, seed, pose_offset, halves,
                             dr.ReduceMode.Local if reduce_mode is None else reduce_mode)
-        if self.bounce1 == "surface":
-            roi = self._region(tx, rx, tx_dir, rx_dir,
-                               float(path_start) + (n_bins + 1) * float(bin_width))
-            self._surface(scene, hists, ctx, roi)
-        if traces:
-            self._trace(scene, hists, ctx, paths_per_pose, ray_stats)
+        buf_type = mi.Float64 if self.float64 else mi.Float
+        hists = [dr.zeros(buf_type, ctx["n_hist"]) for _ in range(ctx["parts"])]
+        roi = None
+        if not traces:
+            roi = self._region(tx, rx, tx_dir / np.linalg.norm(tx_dir, axis=1, keepdims=True),
+                               rx_dir / np.linalg.norm(rx_dir, axis=1, keepdims=True),
+                               float(path_start) + (n_bins + 1) * float(bin_width),
+                               (self.tx_beam, self.rx_beam))
+        self._histograms(scene, HistogramSink(hists, ctx), ctx, roi, paths_per_pose, ray_stats)
         out = []
         for h in hists:
             if self.float64:
@@ -260,7 +357,7 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             dr.eval(h)
             out.append(h.numpy())
         if self.complex_output:
-            result = np.empty(n_hist, np.complex64)
+            result = np.empty(ctx["n_hist"], np.complex64)
             result.real, result.imag = out
         else:
             result = out[0]
@@ -269,27 +366,82 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ shared set-up
     def _context(self, tx, rx, tx_dir, rx_dir, path_start, bin_width, n_bins, seed,
                  pose_offset, halves, reduce_mode) -> dict:
-        n = tx.shape[0]
-
+        """The kernel context of poses given as NumPy arrays [N, 3] (see :meth:`_context_arrays`)."""
         def vec(a):
-            if a.shape[0] == 1:   # Dr.Jit compiles 1-element sources differently per call
+            if a.shape[0] == 1:   # as _context_arrays' widen(), without an extra kernel
                 a = np.repeat(a, 2, axis=0)
-            return mi.Vector3f(*(mi.Float(a[:, i].astype(np.float32)) for i in range(3)))
+            return mi.Vector3f(*(mi.Float(np.ascontiguousarray(a[:, i], np.float32))
+                                 for i in range(3)))
+
+        return self._context_arrays(vec(tx), vec(rx), vec(tx_dir), vec(rx_dir), tx.shape[0],
+                                    dr.opaque(mi.Float, path_start),
+                                    dr.opaque(mi.Float, bin_width), n_bins, seed, pose_offset,
+                                    halves, reduce_mode, (self.tx_beam, self.rx_beam))
+
+    def _context_arrays(self, tx, rx, tx_dir, rx_dir, n, start, width, n_bins, seed,
+                        pose_offset, halves, reduce_mode, beams) -> dict:
+        """Everything a launch reads: the N poses (Dr.Jit vectors of width N or 1, m;
+        boresights of any length > 0, normalised per lane), the window (``start``, ``width``: Dr.Jit Floats, m of
+        round-trip path; differentiable), seeds, buffer strides, the beams. Every per-call
+        scalar is an opaque value, so new poses, windows or seeds reuse compiled kernels."""
+        def widen(v):
+            v = mi.Vector3f(v)
+            # Dr.Jit compiles 1-element sources differently per call: keep width >= 2.
+            if dr.width(v) == 1:
+                v = dr.gather(mi.Vector3f, v, dr.zeros(mi.UInt32, max(n, 2)))
+            return v
 
         stride = self.max_bounces * n_bins
+        tx_beam, rx_beam = beams
         return dict(
             n_poses=n, halves=halves, reduce_mode=reduce_mode,
-            tx=vec(tx), rx=vec(rx), tx_dir=vec(tx_dir), rx_dir=vec(rx_dir),
+            n_hist=(2 if halves else 1) * n * stride, parts=2 if self.complex_output else 1,
+            tx=widen(tx), rx=widen(rx), tx_dir=widen(tx_dir), rx_dir=widen(rx_dir),
             seed=dr.opaque(mi.UInt32, seed), pose_offset=dr.opaque(mi.UInt32, pose_offset),
-            start=dr.opaque(mi.Float, path_start), inv_width=dr.opaque(mi.Float, 1.0 / bin_width),
-            end=dr.opaque(mi.Float, path_start + n_bins * bin_width),
-            margin=dr.opaque(mi.Float, bin_width),
-            n_bins=dr.opaque(mi.Int32, n_bins), pose_stride=dr.opaque(mi.UInt32, stride),
+            start=start, inv_width=1.0 / width, margin=width,
+            end=start + dr.opaque(mi.Float, n_bins) * width,
+            n_bins=dr.opaque(mi.Int32, n_bins), n_bins_value=n_bins,
+            pose_stride=dr.opaque(mi.UInt32, stride),
             half_stride=dr.opaque(mi.UInt32, n * stride),
             n_bins_u=dr.opaque(mi.UInt32, n_bins),
-            tx_c=self.tx_beam.opaque(), rx_c=self.rx_beam.opaque(),
+            tx_beam=tx_beam, rx_beam=rx_beam, tx_c=tx_beam.opaque(), rx_c=rx_beam.opaque(),
             speckle_key=dr.opaque(mi.UInt32, self.speckle_seed),
             inv_speckle=dr.opaque(mi.Float, 1.0 / self.speckle_spacing))
+
+
+def _sonar_sensor(scene, sensor):
+    """The ``sonar`` sensor that ``sensor`` (index, sensor or None) names in ``scene``."""
+    if sensor is None or isinstance(sensor, int):
+        sensors = scene.sensors()
+        index = sensor or 0
+        if not 0 <= index < len(sensors):
+            raise ValueError(f"sonar_transient: the scene has {len(sensors)} sensors; "
+                             f"no sensor {index}")
+        sensor = sensors[index]
+    if not hasattr(sensor, "pose_vectors"):
+        raise ValueError(f"sonar_transient renders 'sonar' sensors, not {type(sensor).__name__}")
+    return sensor
+
+
+def _as_seed(seed) -> int:
+    value = int(seed) if isinstance(seed, (int, np.integer)) else int(np.asarray(seed).ravel()[0])
+    if not 0 <= value < 2**32:
+        raise ValueError(f"sonar_transient: seed must be in [0, 2^32), got {value}")
+    return value
+
+
+def _geometry_fingerprint(scene) -> tuple:
+    """What the surface strata's topology depends on: each shape's vertex positions (a hash)
+    and face count, or its bounding box."""
+    out = []
+    for shape in scene.shapes():
+        if shape.is_mesh():
+            v = np.asarray(dr.detach(shape.vertex_positions_buffer()))
+            out.append((hash(v.tobytes()), int(shape.face_count())))
+        else:
+            bb = shape.bbox()
+            out.append(tuple(np.asarray(bb.min, np.float64)) + tuple(np.asarray(bb.max, np.float64)))
+    return tuple(out)
 
 
 def _include(cls, *parts) -> None:
@@ -317,5 +469,4 @@ def _as_vectors(a, name: str) -> np.ndarray:
         norm = np.linalg.norm(arr, axis=1, keepdims=True)
         if np.any(norm == 0):
             raise ValueError(f"sonar_transient: {name} contains a zero-length boresight")
-        arr = arr / norm
     return arr
