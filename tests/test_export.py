@@ -185,9 +185,9 @@ def _test_volume():
 def _read_vti(path):
     """(magnitude [nx, ny, nz], phase, spacing, origin) through VTK's XML reader, the reader
     ParaView uses."""
-    vtk = pytest.importorskip("vtk")
-    from vtk.util.numpy_support import vtk_to_numpy
-    reader = vtk.vtkXMLImageDataReader()
+    io_xml = pytest.importorskip("vtkmodules.vtkIOXML")
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    reader = io_xml.vtkXMLImageDataReader()
     reader.SetFileName(str(path))
     reader.Update()
     image = reader.GetOutput()
