@@ -194,25 +194,25 @@ def pixel_extent(bounds, shape, axis: int) -> tuple[float, float]:
 
 def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = "",
                   dpi: int = 120) -> Path:
-    """Write the three MIPs (along z, y, x) with metric axes and a colour bar as a PNG."""
+    """Write the MIPs with metric axes and a colour bar as a PNG.
+
+    A volume with several voxels along every axis gets the three MIPs (along z, y, x). A
+    volume with one voxel along one axis is a single slice: one image of it, titled with the
+    slice's coordinate (its other two "projections" would be strips one pixel high). A
+    volume with several voxels along one axis only is drawn as a line plot along that axis.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     path = Path(path)
     shape = magnitude.shape
-    fig, axs = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
-    image = None
-    for ax, axis in zip(axs, (2, 1, 0)):
-        u, v = mip_axes(axis)
-        extent = (*pixel_extent(bounds, shape, u), *pixel_extent(bounds, shape, v))
-        image = ax.imshow(mip(magnitude, axis), origin="lower", extent=extent,
-                          cmap="inferno", vmin=0.0, vmax=1.0, interpolation="nearest")
-        ax.set_xlabel(f"{AXIS_NAMES[u]} (m)")
-        ax.set_ylabel(f"{AXIS_NAMES[v]} (m)")
-        ax.set_title(f"max over {AXIS_NAMES[axis]}")
-        ax.set_aspect("equal")
-    fig.colorbar(image, ax=list(axs), shrink=0.85, label="normalised |σ|")
+    long_axes = [a for a in range(3) if shape[a] > 1]
+    voxel_spacing(bounds, shape)                        # refuses a single voxel
+    if len(long_axes) == 1:
+        fig = _line_figure(plt, magnitude, bounds, long_axes[0])
+    else:
+        fig = _image_figure(plt, magnitude, bounds, long_axes)
     if title:
         fig.suptitle(title)
     try:
@@ -221,6 +221,42 @@ def write_mip_png(path: str | Path, magnitude: np.ndarray, bounds, title: str = 
     finally:
         plt.close(fig)
     return path
+
+
+def _image_figure(plt, magnitude, bounds, long_axes):
+    """Three MIPs, or the one image of a single slice (one axis with one voxel)."""
+    shape = magnitude.shape
+    views = (2, 1, 0) if len(long_axes) == 3 else [a for a in range(3) if a not in long_axes]
+    fig, axs = plt.subplots(1, len(views), figsize=(13, 4.2) if len(views) == 3 else (6, 5),
+                            constrained_layout=True, squeeze=False)
+    image = None
+    for ax, axis in zip(axs[0], views):
+        u, v = mip_axes(axis)
+        extent = (*pixel_extent(bounds, shape, u), *pixel_extent(bounds, shape, v))
+        image = ax.imshow(mip(magnitude, axis), origin="lower", extent=extent,
+                          cmap="inferno", vmin=0.0, vmax=1.0, interpolation="nearest")
+        ax.set_xlabel(f"{AXIS_NAMES[u]} (m)")
+        ax.set_ylabel(f"{AXIS_NAMES[v]} (m)")
+        if len(views) == 3:
+            ax.set_title(f"max over {AXIS_NAMES[axis]}")
+        else:
+            at = float(np.asarray(bounds, dtype=np.float64)[axis, 0])
+            ax.set_title(f"{AXIS_NAMES[axis]} = {at:.3f} m (single slice)")
+        ax.set_aspect("equal")
+    fig.colorbar(image, ax=list(axs[0]), shrink=0.85, label="normalised |σ|")
+    return fig
+
+
+def _line_figure(plt, magnitude, bounds, axis: int):
+    """A volume with several voxels along ``axis`` only: the magnitude along it."""
+    coords = voxel_axes(bounds, magnitude.shape)[axis]
+    fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
+    ax.plot(coords, np.asarray(magnitude).reshape(-1), marker=".")
+    ax.set_xlabel(f"{AXIS_NAMES[axis]} (m)")
+    ax.set_ylabel("normalised |σ|")
+    ax.set_ylim(0.0, 1.05)
+    ax.grid(alpha=0.3)
+    return fig
 
 
 def mip_exr_paths(path: str | Path) -> dict[str, Path]:

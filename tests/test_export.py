@@ -257,3 +257,23 @@ def test_cli_export_vti_and_tiff(tmp_path, capsys):
     assert main(["export", str(tmp_path / "v.h5"), "--exr", str(tmp_path / "e.exr")]) == 2
     assert "--exr " in capsys.readouterr().err and (tmp_path / "e_y.exr").read_text() == "keep"
     assert not (tmp_path / "e_z.exr").exists()
+
+
+def test_mip_png_of_a_single_slice_is_one_image_and_of_a_line_a_plot(tmp_path, monkeypatch):
+    import matplotlib.figure
+    saved = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                        lambda self, *a, **k: saved.append(self))
+    rng = np.random.default_rng(0)
+    b = np.array([[-0.3, 0.3], [-0.3, 0.3], [0.0, 0.0]])
+    export.write_mip_png(tmp_path / "s.png", rng.random((20, 20, 1)), b)
+    images = [ax for ax in saved[-1].axes if ax.images]
+    assert len(images) == 1 and images[0].get_title() == "z = 0.000 m (single slice)"
+    assert images[0].images[0].get_array().shape == (20, 20)
+    export.write_mip_png(tmp_path / "m.png", rng.random((5, 6, 7)), BOUNDS)
+    assert [ax.get_title() for ax in saved[-1].axes if ax.images] == \
+        ["max over z", "max over y", "max over x"]
+    line = np.linspace(0, 1, 9).reshape(1, 1, 9)
+    export.write_mip_png(tmp_path / "l.png", line, BOUNDS)
+    (ax,) = saved[-1].axes
+    assert not ax.images and np.allclose(ax.lines[0].get_xdata(), np.linspace(0.0, 0.3, 9))
