@@ -266,3 +266,24 @@ def test_unsupported_configuration_is_one_line(openstb_result, tmp_path):
                    .replace(f"position = {RX_OFFSETS[1].tolist()}\n", "", 1))
     with pytest.raises(FormatError, match=r"system\.receivers\[1\]\.position: expected 3"):
         read_openstb(result, config=bad)
+
+
+def test_damaged_results_are_one_line(openstb_result, tmp_path):
+    result, config, _, _ = openstb_result
+    src = zarr.open_group(str(result), mode="r")
+
+    def copy(name, **change):
+        root = zarr.open_group(str(tmp_path / name), mode="w")
+        for key in ("pressure", "sample_time", "ping_start_time"):
+            root.create_array(key, data=change.get(key, src[key][...]))
+        root.attrs.update(dict(src.attrs))
+        return tmp_path / name
+
+    p = src["pressure"][...]
+    p[3, 1, 7] = np.nan
+    with pytest.raises(FormatError, match=r"'pressure' has NaN or infinite values \(pings 0\.\.100\)"):
+        read_openstb(copy("nan.zarr", pressure=p), config=config)
+    with pytest.raises(FormatError, match="'pressure' is float64, expected complex"):
+        read_openstb(copy("real.zarr", pressure=src["pressure"][...].real), config=config)
+    with pytest.raises(FormatError, match="'sample_time' is not evenly spaced"):
+        read_openstb(copy("t.zarr", sample_time=src["sample_time"][...] ** 1.01), config=config)

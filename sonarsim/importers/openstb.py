@@ -44,6 +44,7 @@ EXTENSION_FORMAT = "sonarsim.openstb-extension"
 REQUIRED_ARRAYS = ("pressure", "sample_time", "ping_start_time")
 REQUIRED_ATTRS = ("baseband_frequency", "sample_rate")
 OVERSAMPLE_MARGIN = 2.5      # default fs >= 2.5 x the highest frequency the baseband holds
+BLOCK_SAMPLES = 1 << 22      # samples converted at a time (a block of pings, ~100 MB at most)
 
 
 # ------------------------------------------------------------------------------ reading
@@ -64,7 +65,7 @@ def read_openstb(path: str | os.PathLike, *, config: str | os.PathLike | None = 
     from .. import limits
     from ..dataset import SonarDataset
     root = _open_group(path)
-    pressure, t, ping_t, f_bb, rate = _checked_result(root, path)
+    pressure, t, ping_t, f_bb, rate = _checked_result(root, path)   # pressure: lazy
     n_pings, n_rx, n_s = pressure.shape
     ext = _extension(root, path, n_pings, n_rx) if config is None else None
     if config is None and ext is None:
@@ -79,9 +80,9 @@ def read_openstb(path: str | os.PathLike, *, config: str | os.PathLike | None = 
     if abs(start - round(start)) > 1e-6 * max(1.0, abs(start)):
         raise InputError(f"{path}: sample_time starts at {t[0]:.9g} s, not on the sample grid "
                          f"of fs = {out_fs:g} Hz; choose --fs so that it does")
-    limits.check_memory(pressure.size * (16 + factor * 24), f"importing {path}",
-                        f"{n_pings} pings x {n_rx} receivers x {n_s} samples, x{factor} "
-                        "upsampling", "choose a lower --fs")
+    limits.check_memory(n_pings * n_rx * n_s * factor * 4 + BLOCK_SAMPLES * 16 * (2 + factor),
+                        f"importing {path}", f"{n_pings} pings x {n_rx} receivers x {n_s} "
+                        f"samples, x{factor} upsampling", "choose a lower --fs")
     if config is not None:
         from .openstb_config import read_config
         setup = read_config(config, ping_t, n_rx, out_fs)
@@ -91,7 +92,7 @@ def read_openstb(path: str | os.PathLike, *, config: str | os.PathLike | None = 
     if not (math.isfinite(c) and c > 0):
         raise InputError(f"{config}: no sound speed in the configuration ([environment] "
                          "plugin = \"invariant\", sound_speed = ...); give --sound-speed")
-    waveforms = passband(pressure.reshape(n_pings * n_rx, n_s), t[0], rate, f_bb, factor)
+    waveforms = _convert_blocks(pressure, path, t[0], rate, f_bb, factor)
     meta = dict(setup.get("meta") or {})
     meta.update({"openstb_baseband_frequency": f_bb, "openstb_sample_rate": rate,
                  "openstb_receivers": n_rx, "openstb_result": str(path)})
@@ -123,6 +124,30 @@ def passband(pressure: np.ndarray, t0: float, rate: float, f_bb: float, factor: 
     return (up * carrier).real.astype(np.float32)
 
 
+def _convert_blocks(pressure, path, t0: float, rate: float, f_bb: float, factor: int
+                    ) -> np.ndarray:
+    """:func:`passband` of the Zarr array ``pressure`` [P, R, S], read a block of pings at a
+    time (with progress), as waveforms [P·R, factor·S] float32."""
+    from ..progress import progress_bar
+    n_pings, n_rx, n_s = pressure.shape
+    out = np.empty((n_pings * n_rx, n_s * factor), dtype=np.float32)
+    block = max(1, BLOCK_SAMPLES // (n_rx * n_s * factor))
+    with progress_bar(n_pings, True, unit="ping", desc="import-openstb") as bar:
+        for p0 in range(0, n_pings, block):
+            p1 = min(n_pings, p0 + block)
+            try:
+                chunk = np.asarray(pressure[p0:p1])
+            except Exception as exc:          # a damaged chunk: zarr/numcodecs errors vary
+                raise FormatError(f"{path}: 'pressure' pings {p0}..{p1 - 1} cannot be read "
+                                  f"({type(exc).__name__}: {exc})") from None
+            if not np.all(np.isfinite(chunk)):
+                raise FormatError(f"{path}: 'pressure' has NaN or infinite values "
+                                  f"(pings {p0}..{p1 - 1})")
+            out[p0 * n_rx:p1 * n_rx] = passband(chunk.reshape(-1, n_s), t0, rate, f_bb, factor)
+            bar.update(p1 - p0)
+    return out
+
+
 def _open_group(path):
     import zarr
     p = Path(path)
@@ -142,11 +167,18 @@ def _checked_result(root, path):
     for name in REQUIRED_ATTRS:
         if name not in root.attrs:
             raise FormatError(f"{path}: missing attribute '{name}'")
-    pressure = np.asarray(root["pressure"][...])
-    t = np.asarray(root["sample_time"][...], dtype=np.float64)
-    ping_t = np.asarray(root["ping_start_time"][...], dtype=np.float64)
-    f_bb, rate = float(root.attrs["baseband_frequency"]), float(root.attrs["sample_rate"])
-    if pressure.ndim != 3 or 0 in pressure.shape:
+    pressure = root["pressure"]
+    try:
+        t = np.asarray(root["sample_time"][...], dtype=np.float64)
+        ping_t = np.asarray(root["ping_start_time"][...], dtype=np.float64)
+        f_bb, rate = float(root.attrs["baseband_frequency"]), float(root.attrs["sample_rate"])
+    except Exception as exc:                  # damaged arrays, non-numeric attributes
+        raise FormatError(f"{path}: cannot read the result's times and rates "
+                          f"({type(exc).__name__}: {exc})") from None
+    if not np.issubdtype(pressure.dtype, np.complexfloating):
+        raise FormatError(f"{path}: 'pressure' is {pressure.dtype}, expected complex "
+                          "(the baseband pressure)")
+    if len(pressure.shape) != 3 or 0 in pressure.shape:
         raise FormatError(f"{path}: 'pressure' has shape {pressure.shape}, expected "
                           "(pings, receivers, samples) with none of them 0")
     n_pings, _, n_s = pressure.shape
@@ -158,9 +190,8 @@ def _checked_result(root, path):
                           "expected positive finite numbers")
     if n_s > 1 and not np.allclose(np.diff(t), 1.0 / rate, rtol=1e-6, atol=0):
         raise FormatError(f"{path}: 'sample_time' is not evenly spaced at 1/sample_rate")
-    if not (np.all(np.isfinite(pressure)) and np.all(np.isfinite(t))
-            and np.all(np.isfinite(ping_t))):
-        raise FormatError(f"{path}: NaN or infinite values in the result")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(ping_t))):
+        raise FormatError(f"{path}: NaN or infinite sample or ping times")
     return pressure, t, ping_t, f_bb, rate
 
 
@@ -220,7 +251,6 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
     """
     import zarr
 
-    from ..signals import analytic
     if getattr(dataset, "waveform_kind", "real") != "real":
         raise InputError("only datasets of real waveforms can be written as openSTB "
                          "results (this one is pulse-deconvolved)")
@@ -229,14 +259,9 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
         raise InputError(f"--out {path}: exists; pass --force to replace it")
     fs = float(dataset.fs)
     f_bb, factor = _baseband_plan(dataset.pulse, fs, baseband_frequency, sample_rate)
-    w = np.asarray(dataset.waveforms, dtype=np.float64)
-    n, n_t = w.shape
+    n, n_t = dataset.waveforms.shape
     t = (dataset.start_sample + np.arange(n_t)) / fs
-    bb = analytic(w, axis=-1) * np.exp(-2j * np.pi * f_bb * t)
-    if factor > 1:
-        from scipy.signal import resample_poly
-        bb = resample_poly(bb, 1, factor, axis=-1)
-    times = t[::factor][:bb.shape[-1]]
+    times = t[::factor]                    # = the decimated length, ceil(n_t / factor)
     meta = dict(dataset.meta)
     ping_t = np.asarray(meta.pop("ping_start_time", np.arange(n) * (t[-1] + 1.0 / fs)),
                         dtype=np.float64)
@@ -246,8 +271,9 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         root = zarr.open_group(str(tmp), mode="w")
-        root.create_array("pressure", data=bb[:, None, :].astype(np.complex64),
-                          chunks=(min(n, 256), 1, bb.shape[-1]))
+        pressure = root.create_array("pressure", shape=(n, 1, len(times)), dtype=np.complex64,
+                                     chunks=(min(n, 256), 1, len(times)))
+        _baseband_blocks(dataset.waveforms, pressure, t, f_bb, factor)
         root.create_array("sample_time", data=times)
         root.create_array("ping_start_time", data=ping_t)
         root.attrs.update({"baseband_frequency": f_bb, "sample_rate": fs / factor})
@@ -258,6 +284,25 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return path
+
+
+def _baseband_blocks(waveforms, pressure, t: np.ndarray, f_bb: float, factor: int) -> None:
+    """Fill the Zarr array ``pressure`` [N, 1, S'] with the baseband of real ``waveforms``
+    [N, S] (analytic signal, carrier removed, decimated by ``factor``), 256 rows at a time."""
+    from scipy.signal import resample_poly
+
+    from ..progress import progress_bar
+    from ..signals import analytic
+    n = len(waveforms)
+    carrier = np.exp(-2j * np.pi * f_bb * t)
+    with progress_bar(n, True, unit="ping", desc="export-openstb") as bar:
+        for r0 in range(0, n, 256):
+            r1 = min(n, r0 + 256)
+            bb = analytic(np.asarray(waveforms[r0:r1], dtype=np.float64), axis=-1) * carrier
+            if factor > 1:
+                bb = resample_poly(bb, 1, factor, axis=-1)
+            pressure[r0:r1] = bb[:, None, :].astype(np.complex64)
+            bar.update(r1 - r0)
 
 
 def _write_extension(root, dataset, meta: dict) -> None:
