@@ -1,0 +1,286 @@
+"""Surface refinement through the sonar renderer: fit a mesh to the measured waveforms.
+
+``solve(dataset, init, settings)`` starts from a triangle mesh (:func:`start_mesh`: the
+marching-cubes surface of a reconstructed volume, e.g. NBP's, or a given mesh) and moves its
+vertices (and fits the object's albedo relative to the ground's) by gradient descent so that
+the rendered waveforms match the dataset's:
+
+* **Model.** :class:`recon.mesh_echo.MeshEcho` renders the bounce-1 histograms of the mesh
+  over the known ground with exact occlusion and the Lambertian terms on the current surface;
+  :class:`recon.pulse_chain.PulseChain` turns them into waveforms with the simulator's chain
+  (oversampled pulse, decimation, the dataset's timing). Gradients: Dr.Jit AD through the
+  renderer, the adjoint of the pulse chain for the waveform part.
+* **Objective.** The data's absolute scale is unknown, so a global scale α is fitted in closed
+  form each step (loss = ‖α·m − y‖²/‖y‖² = 1 − cos²(m, y), :func:`recon.pulse_chain.scaled_misfit`).
+  Stage 1 compares envelopes of the matched-filtered signals (smooth on the range-resolution
+  scale: a wide capture range), stage 2 the raw waveforms (the carrier phase: sub-millimetre
+  sensitivity).
+* **Regulariser.** The vertices are optimised in the differential form of
+  ``mi.ad.LargeSteps`` (Nicolet et al. 2021, u = (I + λL)v) with UniformAdam, as in Mitsuba's
+  shape-optimisation tutorial; the mesh is remeshed isotropically
+  (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) between segments, which keeps the
+  triangles well shaped.
+* **Pings.** The chosen pings are split into interleaved batches (each spans the aperture);
+  one batch per step. Visibility of each batch is traced every ``visibility_every`` visits and
+  reused in between (the geometry moves by well under a millimetre per step).
+
+docs/refine.md has the method, the measured results and their cost.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import trimesh
+
+from sonarsim.errors import InputError
+
+from .mesh_echo import MeshEcho, Pings, Window
+from .pulse_chain import Envelope, PulseChain, envelope_misfit, scaled_misfit
+
+STAGES = ("envelope", "waveform")
+DEFAULT_GROUND = (0.4, 0.4, 1.0)     # m, m, albedo: the simulator's default ground
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """How :func:`solve` refines a mesh.
+
+    envelope_steps, waveform_steps: optimiser steps of the two stages. lr: UniformAdam step
+    in metres of latent displacement (decays ×0.1 over each stage, cosine). large_steps_lambda:
+    λ of LargeSteps. edge_length: target edge of the isotropic remeshing (m); remesh_every:
+    steps between remeshings (0: only the start mesh is remeshed). order: quadrature points
+    per triangle = order². pings_per_batch: pings per step. visibility_every: steps between
+    shadow-ray passes of a batch. fit_albedo: fit the object's albedo (relative to the
+    ground's; needs a ground). ground_spacing: quadrature cell of the ground (m).
+    oversample: histogram bins per sample (None: the dataset's, else 20). seed: batch order.
+    """
+
+    envelope_steps: int = 120
+    waveform_steps: int = 180
+    lr: float = 5e-4
+    large_steps_lambda: float = 20.0
+    edge_length: float = 5e-3
+    remesh_every: int = 100
+    order: int = 2
+    pings_per_batch: int = 256
+    visibility_every: int = 4
+    fit_albedo: bool = True
+    ground_spacing: float = 4e-3
+    oversample: int | None = None
+    seed: int = 0
+
+    def validate(self) -> None:
+        for name in ("envelope_steps", "waveform_steps", "remesh_every"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
+                raise InputError(f"{name} must be a non-negative integer, got {getattr(self, name)}")
+        for name in ("order", "pings_per_batch", "visibility_every"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
+                raise InputError(f"{name} must be a positive integer, got {getattr(self, name)}")
+        for name in ("lr", "large_steps_lambda", "edge_length", "ground_spacing"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be a positive number, got {v}")
+        if self.envelope_steps + self.waveform_steps == 0:
+            raise InputError("nothing to do: envelope_steps + waveform_steps is 0")
+
+
+@dataclass
+class RefineResult:
+    """The refined mesh (vertices [V, 3] m, faces [F, 3]), the object's albedo relative to the
+    ground's (None without a ground), and the record of every step (stage, loss, α, seconds)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: float | None
+    history: list = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def mesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+# ------------------------------------------------------------------------ the start mesh
+
+def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
+               min_component: float = 0.05) -> trimesh.Trimesh:
+    """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
+
+    Voxels below ``z_min`` (the ground's echo) are cleared first, so the object's surface
+    closes above the ground; components with fewer than ``min_component`` × the largest's
+    faces are dropped (isolated blobs of the volume).
+    """
+    from .export import mesh_from_volume, voxel_axes
+    vol = np.array(volume, copy=True)
+    z = voxel_axes(bounds, vol.shape)[2]
+    vol[:, :, z < z_min] = 0
+    mesh = mesh_from_volume(vol, bounds, threshold)
+    if len(mesh.faces) == 0:
+        raise InputError(f"the volume has nothing above the threshold {threshold} over z >= {z_min} m")
+    return largest_components(mesh, min_component)
+
+
+def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
+    """The connected components of ``mesh`` with ≥ ``min_fraction`` × the largest's faces."""
+    parts = mesh.split(only_watertight=False)
+    if len(parts) <= 1:
+        return mesh
+    biggest = max(len(p.faces) for p in parts)
+    return trimesh.util.concatenate([p for p in parts if len(p.faces) >= min_fraction * biggest])
+
+
+def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Isotropic remeshing to ``edge_length`` (gpytoolbox.remesh_botsch, 5 iterations)."""
+    from gpytoolbox import remesh_botsch
+    v, f = remesh_botsch(np.asarray(vertices, np.float64), np.asarray(faces, np.int32),
+                         i=5, h=float(edge_length), project=True)
+    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+
+# ------------------------------------------------------------------------ the model
+
+def dataset_window(dataset, oversample: int) -> Window:
+    """Histogram bins aligned to a dataset's samples (bin j·K centred on sample j's path)."""
+    c = float(dataset.sound_speed)
+    width = c / (float(dataset.fs) * oversample)
+    return Window(dataset.start_sample * c / dataset.fs - width / 2, width,
+                  dataset.n_samples * oversample)
+
+
+def dataset_ground(dataset) -> tuple[float, float, float] | None:
+    """(size_x, size_y, albedo) of the ground a simulated dataset was rendered with: its
+    scene file when it is at hand, else the simulator's default; None for a scene without."""
+    from pathlib import Path
+    source = dataset.meta.get("scene_source")
+    if source and Path(str(source)).is_file():
+        from sonarsim.scene import load_scene
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            spec = load_scene(str(source))
+        if spec.ground is None:
+            return None
+        return (float(spec.ground.size[0]), float(spec.ground.size[1]), float(spec.ground.albedo))
+    return DEFAULT_GROUND
+
+
+class _Objective:
+    """Loss and its gradient with respect to the histograms, per batch of pings."""
+
+    def __init__(self, dataset, chain: PulseChain):
+        if dataset.waveform_kind != "real":
+            raise InputError("recon refine fits the received waveforms; this dataset holds "
+                             f"{dataset.waveform_kind!r} signals (use the dataset before "
+                             "`recon deconvolve`)")
+        self.chain = chain
+        self.data = np.asarray(dataset.waveforms, np.float64)
+        self.envelope = Envelope(dataset.pulse, dataset.n_samples)
+        self._data_env: dict = {}
+
+    def __call__(self, stage: str, hist: np.ndarray, batch: int, index: np.ndarray):
+        model = self.chain.forward(hist)
+        y = self.data[index]
+        if stage == "waveform":
+            loss, alpha, grad = scaled_misfit(model, y)
+        else:
+            if batch not in self._data_env:
+                self._data_env[batch] = self.envelope(y)[0]
+            loss, alpha, grad = envelope_misfit(model, self._data_env[batch], self.envelope)
+        return loss, alpha, self.chain.adjoint(grad)
+
+
+# ------------------------------------------------------------------------ the solver
+
+def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSettings(), *,
+          ping_index: np.ndarray | None = None, ground="dataset", progress: bool = False,
+          log=None) -> RefineResult:
+    """Refine ``init`` (a trimesh, metres) against ``dataset`` (real waveforms).
+
+    ping_index: the pings to fit (default all); ground: 'dataset' (:func:`dataset_ground`),
+    None (no ground), or (size_x, size_y, albedo). log: callable(str) for one line per
+    remeshing segment.
+    """
+    from sonarsim import runtime
+    from sonarsim.progress import progress_bar
+    mi = runtime.mitsuba()
+    import drjit as dr
+
+    settings.validate()
+    index = np.arange(dataset.n_pings) if ping_index is None else np.asarray(ping_index)
+    if len(index) == 0:
+        raise InputError("no pings to fit")
+    ground = dataset_ground(dataset) if ground == "dataset" else ground
+    k = int(settings.oversample or dataset.meta.get("oversample", 20))
+    window = dataset_window(dataset, k)
+    chain = PulseChain(dataset.pulse, k, dataset.n_samples, window.n_bins)
+    objective = _Objective(dataset, chain)
+    g = None if ground is None else (*ground, settings.ground_spacing)
+    vertices, faces = remesh(init.vertices, init.faces, settings.edge_length)
+    echo = MeshEcho(faces, Pings.of_dataset(dataset), window, order=settings.order, ground=g)
+
+    n_batches = max(1, int(np.ceil(len(index) / settings.pings_per_batch)))
+    rng = np.random.default_rng(settings.seed)
+    batches = [index[b::n_batches] for b in range(n_batches)]
+    fit_albedo = settings.fit_albedo and ground is not None
+    log_albedo = mi.Float(0.0)
+    plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
+    total = sum(n for _, n in plan)
+    history, step, order = [], 0, np.arange(n_batches)
+    bar = progress_bar(total, progress, unit="step", desc="refine")
+    t0 = time.perf_counter()
+    try:
+        for stage, n_steps in plan:
+            done = 0
+            while done < n_steps:
+                seg = n_steps - done if not settings.remesh_every else min(
+                    settings.remesh_every, n_steps - done)
+                if step > 0:
+                    vertices, faces = remesh(vertices, faces, settings.edge_length)
+                    echo.set_mesh(faces)
+                ls = mi.ad.LargeSteps(mi.Float(vertices.astype(np.float32).ravel()),
+                                      mi.UInt32(faces.astype(np.uint32).ravel()),
+                                      settings.large_steps_lambda)
+                opt = mi.ad.Adam(lr=settings.lr, uniform=True)
+                opt["u"] = ls.to_differential(mi.Float(vertices.astype(np.float32).ravel()))
+                opt_rho = mi.ad.Adam(lr=0.02)
+                opt_rho["log_albedo"] = mi.Float(log_albedo)
+                pairs: dict = {}
+                for j in range(seg):
+                    frac = (done + j) / max(1, n_steps - 1)
+                    opt.set_learning_rate(settings.lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * frac))))
+                    if step % n_batches == 0:
+                        order = rng.permutation(n_batches)
+                    b = int(order[step % n_batches])
+                    v = ls.from_differential(opt["u"])
+                    if b not in pairs or step - pairs[b][1] >= settings.visibility_every * n_batches:
+                        pairs[b] = (echo.visibility(v, batches[b]), step)
+                    rho = dr.exp(opt_rho["log_albedo"])
+                    hist = echo.histograms(v, rho, batches[b], pairs[b][0])
+                    h = hist.numpy().reshape(len(batches[b]), window.n_bins)
+                    loss, alpha, grad = objective(stage, h, b, batches[b])
+                    dr.backward(dr.sum(hist * mi.Float(grad.ravel().astype(np.float32))))
+                    opt.step()
+                    if fit_albedo:
+                        opt_rho.step()
+                    history.append({"step": step, "stage": stage, "loss": loss, "alpha": alpha,
+                                    "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
+                                    "seconds": time.perf_counter() - t0})
+                    step += 1
+                    bar.update(1)
+                vertices = np.asarray(ls.from_differential(opt["u"]).numpy(),
+                                      np.float64).reshape(-1, 3)
+                log_albedo = mi.Float(opt_rho["log_albedo"])
+                done += seg
+                if log is not None:
+                    recent = [h["loss"] for h in history[-min(seg, n_batches * 2):]]
+                    log(f"{stage} steps {done}/{n_steps}: loss {np.mean(recent):.4f}, "
+                        f"{len(faces)} faces, {time.perf_counter() - t0:.0f} s")
+    finally:
+        bar.close()
+    albedo = float(dr.exp(log_albedo)[0]) if fit_albedo else None
+    return RefineResult(vertices, faces, albedo, history,
+                        {**asdict(settings), "pings": int(len(index)), "ground": ground,
+                         "oversample": k})
