@@ -21,7 +21,9 @@ Options every subcommand gets here:
   after the subcommand (:mod:`sonarsim.progress`: results on stdout, diagnostics on
   stderr, progress as timed log lines when stderr is not a terminal).
 
-Interruptions and closed pipes end a command as Unix tools end: Ctrl-C prints one line
+An operating-system error no writer turned into a message (a full disk, a read-only file
+system) is one line ``PROG: error: PATH: reason`` with exit status 1. Interruptions and
+closed pipes end a command as Unix tools end: Ctrl-C prints one line
 ``PROG: interrupted`` and exits 130; output into a pipe whose reader has gone (``sonarsim
 info D.h5 | head -1``) stops silently with exit status 141 (128 + SIGPIPE). A usage
 mistake is one line plus a pointer to ``--help`` (exit 2), not argparse's usage block.
@@ -41,6 +43,7 @@ from . import limits, outputs, progress, runtime
 from .threads import check_threads, dr_threads
 from .errors import InputError, SonarsimError
 
+EXIT_FAILURE = 1              # the system failed us (a full disk, ...), not a usage mistake
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130        # 128 + SIGINT, what a shell reports for Ctrl-C
 EXIT_BROKEN_PIPE = 141        # 128 + SIGPIPE, what a shell reports for `yes | head -1`
@@ -239,3 +242,7 @@ def _run_command(prog: str, package: str, args: argparse.Namespace) -> int:
             f"{exc.filename}: {exc.strerror}"
         _print_err(f"{prog}: error: {msg}")
         return EXIT_USAGE
+    except OSError as exc:           # a full disk, a read-only or vanished file system, ...
+        where = f"{exc.filename}: " if exc.filename else ""
+        _print_err(f"{prog}: error: {where}{exc.strerror or exc}")
+        return EXIT_FAILURE
