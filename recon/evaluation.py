@@ -1,5 +1,6 @@
-"""Evaluating a volume file against a ground-truth mesh: every metric of ``recon evaluate``,
-under the exact protocol or the reference's (docs/evaluation.md), plus its text and JSON forms.
+"""Evaluating a reconstruction file — a volume (``.h5``) or a mesh (PLY/OBJ/..., world metres)
+— against a ground truth: every metric of ``recon evaluate``, under the exact protocol or the
+reference's (docs/evaluation.md), plus its text and JSON forms.
 
 Used by ``recon evaluate``, ``recon compare``, the batch reconstruction step and
 ``benchmarks/table2.py``.
@@ -7,69 +8,115 @@ Used by ``recon evaluate``, ``recon compare``, the batch reconstruction step and
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from sonarsim.dataset import Volume
+from sonarsim.errors import InputError
 
-from . import export, metrics
+from . import export, groundtruth, metrics, protocol_reference, views
 
 PROTOCOLS = ("exact", "reference")
 
 
-def evaluate_file(path: Path, gt_mesh, *, threshold: float, normalize: str = "minmax",
-                  sweep: bool = True, images: bool = True, samples: int =
-                  metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None,
-                  protocol: str = "exact", volume_samples: int = metrics.N_VOLUME_SAMPLES,
-                  view_resolution: int | None = None) -> dict:
-    """All metrics of one volume file (see :func:`recon.metrics.evaluate`, or
-    :func:`recon.metrics.evaluate_reference` with ``protocol='reference'``).
+def is_mesh_file(path) -> bool:
+    """True for a mesh file (by suffix): evaluated as a surface, not as a volume."""
+    return Path(path).suffix.lower() in groundtruth.MESH_SUFFIXES
 
-    ``crop``: six numbers x0 x1 y0 y1 z0 z1 (m) or None. Image metrics render the
-    (cropped) reconstruction against the whole GT mesh; ``view_resolution`` overrides the
-    protocol's image size (pixels, e.g. for quick runs).
+
+def _as_ground_truth(gt) -> groundtruth.GroundTruth:
+    """A :class:`GroundTruth` from a GroundTruth, a mesh (described as given by the caller)
+    or a ``--gt`` spec."""
+    if isinstance(gt, groundtruth.GroundTruth):
+        return gt
+    if hasattr(gt, "faces"):
+        mesh, warnings = groundtruth.check_mesh(gt, "ground truth")
+        return groundtruth.GroundTruth(mesh, "(mesh given by the caller)", "mesh",
+                                       "as given by the caller", warnings)
+    return groundtruth.load_ground_truth(gt)
+
+
+def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD,
+                  normalize: str = "minmax", sweep: bool = True, images: bool = True,
+                  samples: int = metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None,
+                  protocol: str = "exact",
+                  volume_samples: int = protocol_reference.N_VOLUME_SAMPLES,
+                  view_resolution: int | None = None, mapping: str = "reference") -> dict:
+    """All metrics of one reconstruction file against ``gt`` (a ``--gt`` spec, a
+    :class:`recon.groundtruth.GroundTruth` or a trimesh).
+
+    A volume: :func:`recon.metrics.evaluate` (exact) or
+    :func:`recon.protocol_reference.evaluate_reference`; a mesh file:
+    :func:`recon.metrics.evaluate_mesh` or :func:`recon.protocol_reference.evaluate_reference_mesh`
+    (no threshold, no sweep). ``crop``: six numbers x0 x1 y0 y1 z0 z1 (m) or None. Image
+    metrics render the (cropped) reconstruction against the whole GT mesh;
+    ``view_resolution`` overrides the protocol's image size (pixels, e.g. for quick runs).
+    ``mapping``: the reference protocol's vertex mapping (``protocol_reference.MAPPINGS``).
+
+    The result names the ground truth (``gt``: source, kind, frame, bounds) and carries
+    ``warnings`` (one line each) about it: a mesh file scored as given while the volume's
+    dataset placed its object elsewhere, a GT outside the evaluated box, a flat or open GT.
     """
-    from dataclasses import replace
-
-    from sonarsim.errors import InputError
-    from . import views
     export.check_threshold(threshold)
     if protocol not in PROTOCOLS:
         raise InputError(f"protocol: choose one of {', '.join(PROTOCOLS)}, got {protocol!r}")
     for name, n in (("--samples", samples), ("--volume-samples", volume_samples)):
         if int(n) < 1:
             raise InputError(f"{name}: must be >= 1, got {n}")
-    vol = Volume.read(path)
+    gt = _as_ground_truth(gt)
     box = None if crop is None else np.asarray(crop, dtype=np.float64).reshape(3, 2)
     if protocol == "reference":
+        cams, reference = views.REFERENCE_VIEWS, True
         if normalize != "minmax":
             raise InputError("--protocol reference normalises min-max (as the reference); "
                              "drop --normalize")
-        result, mesh = metrics.evaluate_reference(
-            vol.volume, vol.bounds, gt_mesh, threshold=threshold, seed=seed,
-            n_volume=volume_samples, n_surface=samples,
-            sweep=metrics.DEFAULT_SWEEP if sweep else None, crop=box)
-        result = {"volume": str(path), "method": vol.method, **result}
-        if images:
-            cams = views.REFERENCE_VIEWS
-            if view_resolution:
-                cams = replace(cams, resolution=int(view_resolution))
-            result.update(views.image_metrics(gt_mesh, mesh, cams, gaussian_ssim=True))
-        return result
-    result = metrics.evaluate(vol.volume, vol.bounds, gt_mesh, threshold=threshold,
-                              sweep=metrics.DEFAULT_SWEEP if sweep else None,
-                              normalization=normalize, n_samples=samples, seed=seed, crop=box)
-    result = {"volume": str(path), "method": vol.method, "protocol": "exact", **result}
+    else:
+        cams, reference = views.Turntable(), False
+    if view_resolution:
+        cams = replace(cams, resolution=int(view_resolution))
+    warnings = list(gt.warnings)
+    if is_mesh_file(path):
+        mesh = groundtruth.load_reconstruction_mesh(path)
+        if protocol == "reference":
+            result = protocol_reference.evaluate_reference_mesh(
+                mesh, gt.mesh, seed=seed, n_volume=volume_samples, n_surface=samples)
+        else:
+            result = metrics.evaluate_mesh(mesh, gt.mesh, n_samples=samples, seed=seed, crop=box)
+        result = {"volume": str(path), "method": "mesh", "kind": "mesh",
+                  "normalization": None, **result}
+        warnings += groundtruth.outside_box_warnings(gt, result["evaluated_bounds"])
+    else:
+        from sonarsim.dataset import Volume
+        vol = Volume.read(path)
+        warnings += groundtruth.placement_warnings(gt, vol.params.get("dataset"))
+        if protocol == "reference":
+            result, mesh = protocol_reference.evaluate_reference(
+                vol.volume, vol.bounds, gt.mesh, threshold=threshold, seed=seed,
+                n_volume=volume_samples, n_surface=samples,
+                sweep=protocol_reference.SWEEP if sweep else None,
+                chamfer_sweep=protocol_reference.CHAMFER_SWEEP if sweep else None,
+                crop=box, mapping=mapping)
+        else:
+            result = metrics.evaluate(vol.volume, vol.bounds, gt.mesh, threshold=threshold,
+                                      sweep=metrics.DEFAULT_SWEEP if sweep else None,
+                                      normalization=normalize, n_samples=samples, seed=seed,
+                                      crop=box)
+            result["protocol"] = "exact"
+            mesh = None
+        result = {"volume": str(path), "method": vol.method, "kind": "volume", **result}
+        warnings += groundtruth.outside_box_warnings(gt, result["evaluated_bounds"])
+        if images and mesh is None:
+            volume, bounds = vol.volume, vol.bounds
+            if box is not None:
+                volume, bounds = export.crop_volume(volume, bounds, box)
+            mesh = export.mesh_from_volume(volume, bounds, threshold, normalize)
     if images:
-        volume, bounds = vol.volume, vol.bounds
-        if box is not None:
-            volume, bounds = export.crop_volume(volume, bounds, box)
-        mesh = export.mesh_from_volume(volume, bounds, threshold, normalize)
-        cams = views.Turntable()
-        if view_resolution:
-            cams = replace(cams, resolution=int(view_resolution))
-        result.update(views.image_metrics(gt_mesh, mesh, cams))
+        result.update(views.image_metrics(gt.mesh, mesh, cams, reference=reference))
+        result["views"] = {"n_views": cams.n_views, "resolution": cams.resolution,
+                           "yfov_rad": cams.yfov}
+    result["gt"] = gt.describe()
+    result["warnings"] = warnings
     return result
 
 
@@ -101,15 +148,24 @@ ROWS = [("iou", "IoU (5 mm cells)", ""), ("mesh_iou", "IoU of the mesh samples",
         ("completeness_m", "  GT -> pred", " m"),
         ("chamfer_vox_sq", "Chamfer vs voxels, sq.", " m²"),
         ("normal_consistency", "normal consistency", ""),
+        ("normal_error_deg", "normal error", "°"),
         ("psnr_depth", "PSNR depth", " dB"), ("ssim_depth", "SSIM depth", ""),
         ("psnr_shaded", "PSNR shaded", " dB"), ("ssim_shaded", "SSIM shaded", "")]
 
 
 def format_table(result: dict) -> list[str]:
-    lines = [f"{result['volume']} ({result['method']}), {result['protocol']} protocol, "
-             f"threshold {result['threshold']:g}, normalisation {result['normalization']}"]
+    if result.get("kind") == "mesh":
+        head = (f"{result['volume']} (mesh), {result['protocol']} protocol")
+    else:
+        head = (f"{result['volume']} ({result['method']}), {result['protocol']} protocol, "
+                f"threshold {result['threshold']:g}, normalisation {result['normalization']}")
+    lines = [head]
+    gt = result.get("gt")
+    if gt:
+        lines.append(f"  ground truth: {gt['source']} ({gt['kind']}: {gt['frame']})")
     if result["empty"]:
-        lines.append("  reconstruction is empty at this threshold: no voxel above it")
+        lines.append("  reconstruction is empty" + ("" if result.get("kind") == "mesh" else
+                                                    " at this threshold: no voxel above it"))
     for key, label, unit in ROWS:
         if key not in result:
             continue

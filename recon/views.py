@@ -1,19 +1,23 @@
 """Depth and shaded renders of meshes around a turntable, and image metrics (PSNR, SSIM).
 
-The reference renders with pyrender (OpenGL; reference code ``evaluate/``); here a pinhole
-camera grid is ray cast with Mitsuba's ``scene.ray_intersect`` on the CPU variant, so no
-OpenGL or RGB variant is needed.
+The reference renders with pyrender (OpenGL; reference code ``evaluate/visualize_render_utils.py``
+and ``evaluate/main_image_space_loss.py``); here the same pinhole cameras are ray cast with
+Mitsuba's ``scene.ray_intersect`` on the CPU variant, so no OpenGL or RGB variant is needed.
 
-* Cameras: ``n_views`` azimuths 0°, 360°/n, ... at distance 0.3 m from the z axis and
-  height 0.1 m, looking horizontally at (0, 0, 0.1); vertical field of view 60°. (The
-  reference's CLI passes "60" to pyrender as *radians*; its intended value is π/3 = 60°,
-  which is used here.)
+* Cameras (:class:`Turntable`, the reference's placement): view i at azimuth a = 360°·i/n sits at
+  (r·cos(90° − a), r·sin(90° − a), elevation), r = √(distance² − elevation²) (distance from the
+  origin 0.3 m, elevation 0.1 m), looking at (0, 0, 0.1) with z up; near plane 5 cm (pyrender's
+  default). ``yfov`` is the value pyrender's ``PerspectiveCamera`` receives, in radians: the
+  exact protocol uses π/3 (60°); the reference's command line passes ``--fov 60``, which pyrender
+  reads as 60 *radians*: tan(30) = −6.4, i.e. a 162° field of view with the image turned by 180°
+  — reproduced under ``--protocol reference`` (``REFERENCE_VIEWS``).
 * ``depth``: distance along the camera axis (m), 0 where no surface is hit (pyrender's
-  convention); the reference compares depth images with data_range 1, i.e. metres.
-* ``shaded``: ``|n · v|`` headlight Lambert shading in [0, 1] (v = view ray), 0 for the
-  background.
-* PSNR over the whole stack of views (one MSE), SSIM averaged over views, both with
-  data range 1 (scikit-image; optionally with torchmetrics' Gaussian window, as the reference).
+  convention); ``shaded``: ``|n · v|`` headlight Lambert shading in [0, 1] (v = view ray).
+* PSNR over the whole stack of views (one MSE), SSIM averaged over views (scikit-image;
+  optionally with torchmetrics' Gaussian window, as the reference). The exact protocol uses
+  data range 1 on depth clipped to [0, 1] m; the reference's ``PeakSignalNoiseRatio()`` has no
+  data range and takes it from its second argument (the reconstruction's depth images:
+  max − min, the running minimum starting at 0): ``psnr(..., data_range=None)``.
 * LPIPS (the reference's VGG LPIPS) is not computed: it needs PyTorch and VGG weights
   downloaded at run time (docs/evaluation.md).
 """
@@ -24,36 +28,43 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+ZNEAR = 0.05      # pyrender's PerspectiveCamera default near plane (m)
+
 
 @dataclass(frozen=True)
 class Turntable:
-    """Camera ring: ``n_views`` azimuths, ``distance`` (m) from the z axis, ``height`` (m),
-    vertical ``fov_deg``, square images of ``resolution`` pixels."""
+    """Camera ring (module docstring): ``n_views`` azimuths, ``distance`` (m) from the origin,
+    camera height ``elevation`` (m), look-at height ``look_height`` (m), vertical field of view
+    ``yfov`` (radians, as pyrender reads it; tan(yfov/2) < 0 turns the image by 180°), square
+    images of ``resolution`` pixels."""
     n_views: int = 10
     distance: float = 0.3
-    height: float = 0.1
-    fov_deg: float = 60.0
+    elevation: float = 0.1
+    look_height: float = 0.1
+    yfov: float = float(np.pi / 3)
     resolution: int = 256
 
     def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Origins [V*H*W, 3], unit directions [V*H*W, 3], camera forward axes [V, 3]."""
+        """Origins [V*H*W, 3] (on the near plane), unit directions [V*H*W, 3], camera forward
+        axes [V, 3]."""
         n, res = self.n_views, self.resolution
-        az = np.deg2rad(np.arange(n) * 360.0 / n)
-        eye = np.stack([self.distance * np.cos(az), self.distance * np.sin(az),
-                        np.full(n, self.height)], axis=1)
-        forward = -eye * np.array([1.0, 1.0, 0.0])
+        az = np.deg2rad(90.0 - np.arange(n) * 360.0 / n)
+        r = np.sqrt(max(self.distance ** 2 - self.elevation ** 2, 0.0))
+        eye = np.stack([r * np.cos(az), r * np.sin(az), np.full(n, self.elevation)], axis=1)
+        target = np.array([0.0, 0.0, self.look_height])
+        forward = target - eye
         forward /= np.linalg.norm(forward, axis=1, keepdims=True)
-        up = np.array([0.0, 0.0, 1.0])
-        right = np.cross(forward, up)
+        right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
         right /= np.linalg.norm(right, axis=1, keepdims=True)
         true_up = np.cross(right, forward)
-        half = np.tan(np.deg2rad(self.fov_deg) / 2)
+        half = np.tan(self.yfov / 2)
         s = (2 * (np.arange(res) + 0.5) / res - 1) * half
         u, v = np.meshgrid(s, -s, indexing="xy")  # row 0 = top of the picture
         d = (forward[:, None, None, :] + u[None, :, :, None] * right[:, None, None, :]
              + v[None, :, :, None] * true_up[:, None, None, :])
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        o = np.broadcast_to(eye[:, None, None, :], d.shape)
+        along = np.einsum("vhwk,vk->vhw", d, forward)
+        o = eye[:, None, None, :] + d * (ZNEAR / along)[..., None]
         return o.reshape(-1, 3), d.reshape(-1, 3), forward
 
 
@@ -84,15 +95,23 @@ def render_views(mesh: trimesh.Trimesh, cams: Turntable = Turntable()) -> dict[s
     valid = si.is_valid()
     t = dr.select(valid, si.t, 0.0)
     cos = dr.select(valid, dr.abs(dr.dot(si.n, ray.d)), 0.0)
-    t_np = np.asarray(t, dtype=np.float64).reshape(shape)
     fwd_cos = np.einsum("vhwk,vk->vhw", d.reshape(*shape, 3), forward)
-    return {"depth": (t_np * fwd_cos).astype(np.float32),
+    t_np = np.asarray(t, dtype=np.float64).reshape(shape)
+    hit = np.asarray(valid, dtype=bool).reshape(shape)
+    depth = np.where(hit, t_np * fwd_cos + ZNEAR, 0.0)
+    return {"depth": depth.astype(np.float32),
             "shaded": np.asarray(cos, dtype=np.float32).reshape(shape)}
 
 
-def psnr(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0) -> float:
-    """PSNR (dB) over a whole image stack; ``inf`` for identical stacks."""
-    mse = float(np.mean((np.asarray(reference, np.float64) - np.asarray(test, np.float64)) ** 2))
+def psnr(reference: np.ndarray, test: np.ndarray, data_range: float | None = 1.0) -> float:
+    """PSNR (dB) over a whole image stack; ``inf`` for identical stacks.
+
+    ``data_range=None``: torchmetrics' ``PeakSignalNoiseRatio()`` without a range, as the
+    reference calls it: max(test, 0) − min(test, 0) over the stack."""
+    ref, tst = np.asarray(reference, np.float64), np.asarray(test, np.float64)
+    if data_range is None:
+        data_range = max(float(tst.max(initial=0.0)), 0.0) - min(float(tst.min(initial=0.0)), 0.0)
+    mse = float(np.mean((ref - tst) ** 2))
     return float("inf") if mse == 0 else float(10 * np.log10(data_range ** 2 / mse))
 
 
@@ -112,20 +131,30 @@ def ssim(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0,
                                           np.asarray(test, np.float64))]))
 
 
-REFERENCE_VIEWS = Turntable(n_views=10, distance=0.3, height=0.1, fov_deg=60.0, resolution=512)
+# The reference's ten views at 512² with pyrender reading "--fov 60" as 60 radians.
+REFERENCE_VIEWS = Turntable(n_views=10, distance=0.3, elevation=0.1, look_height=0.1,
+                            yfov=60.0, resolution=512)
 
 
 def image_metrics(gt_mesh: trimesh.Trimesh, mesh: trimesh.Trimesh,
-                  cams: Turntable = Turntable(), gaussian_ssim: bool = False) -> dict:
+                  cams: Turntable = Turntable(), reference: bool = False) -> dict:
     """PSNR and SSIM of depth and shaded renders of ``mesh`` against ``gt_mesh``.
 
-    The reference's protocol uses ``cams=REFERENCE_VIEWS`` (its 10 views at 512²) and
-    ``gaussian_ssim=True`` (torchmetrics' SSIM window).
+    ``reference=False`` (exact protocol): depth clipped to [0, 1] m, data range 1, SSIM with
+    scikit-image's 7 × 7 window. ``reference=True`` (use ``cams=REFERENCE_VIEWS``): the
+    reference's ``main_image_space_loss.py`` on depth images in metres, unclipped: PSNR with
+    the data range of the reconstruction's images, SSIM with torchmetrics' Gaussian window and
+    data range 1; the shaded images get the same treatment.
     """
     ref, test = render_views(gt_mesh, cams), render_views(mesh, cams)
     out = {}
     for kind in ("depth", "shaded"):
-        r, t = np.clip(ref[kind], 0, 1), np.clip(test[kind], 0, 1)
-        out[f"psnr_{kind}"] = psnr(r, t)
-        out[f"ssim_{kind}"] = ssim(r, t, gaussian=gaussian_ssim)
+        if reference:
+            r, t = ref[kind], test[kind]
+            out[f"psnr_{kind}"] = psnr(r, t, data_range=None)
+            out[f"ssim_{kind}"] = ssim(r, t, gaussian=True)
+        else:
+            r, t = np.clip(ref[kind], 0, 1), np.clip(test[kind], 0, 1)
+            out[f"psnr_{kind}"] = psnr(r, t)
+            out[f"ssim_{kind}"] = ssim(r, t)
     return out

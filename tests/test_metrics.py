@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from recon import export, metrics
+from recon import export, metrics, protocol_reference as ref
 from sonarsim.errors import FormatError, InputError
 
 # Cube of side S with faces between lattice points of spacing H, so that exactly
@@ -65,6 +65,23 @@ def test_containment_majority_vote_survives_a_hole():
     assert not np.array_equal(z_parity[clear], (r < 0.05)[clear])  # one vote is wrong...
     inside = metrics.inside_mesh_lattice(holed, coords)
     assert np.array_equal(inside[clear], (r < 0.05)[clear])  # ...the majority is right
+
+
+def test_normal_agreement_closed_form():
+    """Normals tilted by θ against the same points: angle θ, consistency cos θ, both ways;
+    the orientation does not count; the exact protocol's iso-surface of the cube is within a
+    few degrees of the GT's faces."""
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (500, 2)), np.zeros(500)]
+    up = np.tile([0.0, 0.0, 1.0], (500, 1))
+    theta = np.deg2rad(25.0)
+    tilted = np.tile([np.sin(theta), 0.0, -np.cos(theta)], (500, 1))   # flipped orientation
+    nc, angle = metrics.normal_agreement(pts, up, pts, tilted)
+    assert angle == pytest.approx(25.0, abs=1e-9) and nc == pytest.approx(np.cos(theta))
+    assert metrics.normal_agreement(pts, up, pts[:0], up[:0]) == (None, None)
+    res = metrics.evaluate(cube_volume(), BOX, cube_mesh(), threshold=0.5, sweep=None,
+                           n_samples=4000)
+    assert res["normal_error_deg"] < 6.0      # the marching-cubes bevels at edges and corners
 
 
 def test_cell_grid_and_iou_basics():
@@ -169,7 +186,9 @@ def test_depth_render_of_a_sphere_matches_ray_sphere_intersection(mi):
     b = np.sum(oc * d, axis=1)
     disc = b * b - (np.sum(oc * oc, axis=1) - radius ** 2)
     t = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), 0.0)
-    depth = (t * np.sum(d * np.repeat(forward, 48 * 48, axis=0), axis=1)).reshape(3, 48, 48)
+    # rays start on the near plane, ZNEAR along the camera axis in front of the eye
+    depth = np.where(disc > 0, t * np.sum(d * np.repeat(forward, 48 * 48, axis=0), axis=1)
+                     + views.ZNEAR, 0.0).reshape(3, 48, 48)
     safe = np.abs(disc.reshape(3, 48, 48)) > 2e-4  # skip pixels grazing the silhouette
     assert np.abs(out["depth"] - depth)[safe].max() < 2e-4
     assert out["shaded"].max() <= 1.0 and out["shaded"][depth > 0].min() >= 0.0
@@ -245,19 +264,19 @@ def test_inside_mesh_points_matches_the_ball_and_survives_a_hole():
     pts = np.random.default_rng(3).uniform(-0.07, 0.07, (4000, 3))
     r = np.linalg.norm(pts, axis=1)
     clear = np.abs(r - 0.05) > 0.002
-    assert np.array_equal(metrics.inside_mesh_points(sphere, pts)[clear], (r < 0.05)[clear])
+    assert np.array_equal(ref.inside_mesh_points(sphere, pts)[clear], (r < 0.05)[clear])
     holed = sphere.copy()
     holed.update_faces(holed.face_normals[:, 2] < 0.97)
-    assert np.array_equal(metrics.inside_mesh_points(holed, pts)[clear], (r < 0.05)[clear])
+    assert np.array_equal(ref.inside_mesh_points(holed, pts)[clear], (r < 0.05)[clear])
 
 
 def test_volume_samples_are_rejection_samples_of_the_bounding_box():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
-    pts = metrics.volume_samples(sphere, 20_000, seed=1)
+    pts = ref.volume_samples(sphere, 20_000, seed=1)
     assert np.linalg.norm(pts, axis=1).max() < 0.05
     # binomial: 20 000 tries, p = V/V_box = π/6 -> std 0.0035
     assert len(pts) / 20_000 == pytest.approx(sphere.volume / 0.1 ** 3, abs=0.015)
-    assert np.array_equal(pts, metrics.volume_samples(sphere, 20_000, seed=1))
+    assert np.array_equal(pts, ref.volume_samples(sphere, 20_000, seed=1))
 
 
 def test_reference_mesh_is_the_smoothed_binary_surface_in_world_coordinates():
@@ -266,12 +285,12 @@ def test_reference_mesh_is_the_smoothed_binary_surface_in_world_coordinates():
     x, y, z = np.meshgrid(*export.voxel_axes(bounds, shape), indexing="ij")
     centre = np.array([0.012, -0.02, 0.007])
     r = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2)
-    mesh = metrics.reference_mesh((r < 0.05).astype(np.float32), bounds, 0.2)
+    mesh = ref.reference_mesh((r < 0.05).astype(np.float32), bounds, 0.2, mapping="centre")
     dist = np.linalg.norm(mesh.vertices - centre, axis=1)
     assert np.abs(mesh.vertices.mean(axis=0) - centre).max() < 0.2 * 0.0025   # centred
     assert abs(dist.mean() - 0.05) < 0.5 * 0.0025                            # radius
     assert dist.std() < 0.0025
-    assert metrics.reference_mesh(np.zeros((5, 5, 5)), bounds, 0.2).faces.shape[0] == 0
+    assert ref.reference_mesh(np.zeros((5, 5, 5)), bounds, 0.2).faces.shape[0] == 0
 
 
 def test_reference_protocol_iou_ceiling_and_shifted_cube_chamfer():
@@ -281,32 +300,83 @@ def test_reference_protocol_iou_ceiling_and_shifted_cube_chamfer():
     and the squared Chamfer of a shifted cube is the closed form."""
     gt = cube_mesh()
     n = 2000
-    cells = metrics.CellGrid(*metrics.REFERENCE_IOU_BOUNDS.T, 0.005)
     overlap = []
     for a in range(3):
-        edges = metrics.REFERENCE_IOU_BOUNDS[a, 0] + 0.005 * np.arange(cells.shape[a] + 1)
+        edges = ref.BOX[a, 0] + 0.005 * np.arange(ref.IOU_CELLS[a] + 1)
         overlap.append(np.clip(np.minimum(edges[1:], CUBE_LO + S)
                                - np.maximum(edges[:-1], CUBE_LO), 0, None))
-    pred = cells.occupancy(export.occupied_points(np.abs(cube_volume()), BOX, 0.5))
+    pred = ref.voxelize(export.occupied_points(np.abs(cube_volume()), BOX, 0.5))
+    # the cells k = -1, ..., -6 below z = 0 (the cube reaches 26.2 mm down) wrap to the top
+    # layers 60 + k (NumPy's negative index), for GT samples and predicted voxels alike
+    top = -0.005 * np.arange(6)
+    overlap[2][60 - 6:][::-1] = np.clip(np.minimum(top, 0) - np.maximum(top - 0.005, CUBE_LO),
+                                       0, None)
 
     def expected(n):
         p = 1 - np.exp(-n * np.einsum("i,j,k->ijk", *overlap) / S ** 3)
         return p[pred].sum() / (pred.sum() + p[~pred].sum())
-    res, mesh = metrics.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, n_volume=n,
-                                           sweep=None)
-    assert res["iou"] == pytest.approx(expected(n), abs=0.03)        # 0.77
+    res, mesh = ref.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, n_volume=n,
+                                       sweep=None, chamfer_sweep=None, mapping="centre")
+    assert res["iou"] == pytest.approx(expected(n), abs=0.03)
     assert res["iou_bounds"] == [[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]]
-    # the cube lies partly below z = 0: cells there are outside the fixed IoU grid for both
-    assert res["gt_cells"] < 1000
-    full, _ = metrics.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, sweep=None)
-    assert full["iou"] == pytest.approx(expected(50_000), abs=0.02)   # 0.83: partial cells
-    assert full["chamfer_sq"] < 1e-5
-    shifted, _ = metrics.evaluate_reference(cube_volume(D), BOX, gt, threshold=0.5,
-                                            sweep=(0.3, 0.5))
+    assert res["iou_cells"] == [80, 80, 60]
+    full, _ = ref.evaluate_reference(cube_volume(), BOX, gt, threshold=0.5, sweep=None,
+                                     chamfer_sweep=None, mapping="centre")
+    assert full["iou"] == pytest.approx(expected(50_000), abs=0.02)
+    assert full["chamfer_sq"] < 1e-5 and full["normal_error_deg"] < 15   # smoothed voxels
+    shifted, _ = ref.evaluate_reference(cube_volume(D), BOX, gt, threshold=0.5,
+                                        sweep=(0.3, 0.5), chamfer_sweep=(0.5,),
+                                        mapping="centre")
     expected_sq, _ = shifted_cube_chamfer(S, D)
     assert shifted["chamfer_sq"] == pytest.approx(expected_sq, rel=0.15)
     assert shifted["best_iou_threshold"] in (0.3, 0.5)
+    assert shifted["best_chamfer_sq"] == shifted["chamfer_sq"]
     assert len(mesh.faces) > 0
+
+
+def test_reference_voxelize_keeps_the_references_grid_quirks():
+    """80 x 80 x 60 cells; indices above the grid clamp to the last cell, negative ones wrap
+    (NumPy), far-below points are dropped."""
+    assert ref.IOU_CELLS == (80, 80, 60)
+    pts = np.array([[0.0, 0.0, 0.0012],      # z cell 0
+                    [0.01, 0.0, -0.002],     # wraps to z cell 59
+                    [0.0, 0.0, 0.3],         # index 60 -> clamped to 59
+                    [0.2, -0.2, 0.1],        # x index 80 -> 79, y 0
+                    [0.0, 0.0, -0.5]])       # dropped
+    occ = ref.voxelize(pts)
+    assert occ.sum() == 4
+    assert occ[40, 40, 0] and occ[42, 40, 59] and occ[40, 40, 59] and occ[79, 0, 20]
+
+
+def test_reference_vertex_mapping_is_the_references_normalize_vertices():
+    """mapping='reference' places a vertex at lo + p/n·(hi − lo) (p: padded index), i.e. the
+    'centre' mesh moved by that closed form, up to one voxel towards +x, +y, +z."""
+    bounds = np.array([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]])
+    shape = (40, 40, 30)
+    x, y, z = np.meshgrid(*export.voxel_axes(bounds, shape), indexing="ij")
+    blob = ((x - 0.03) ** 2 + y ** 2 + (z - 0.12) ** 2 < 0.07 ** 2).astype(np.float32)
+    centre = ref.reference_mesh(blob, bounds, 0.2, mapping="centre")
+    quirk = ref.reference_mesh(blob, bounds, 0.2, mapping="reference")
+    n = np.asarray(shape, float)
+    ext = bounds[:, 1] - bounds[:, 0]
+    p = (centre.vertices - bounds[:, 0]) / (ext / (n - 1)) + 1      # padded index
+    assert np.allclose(quirk.vertices, bounds[:, 0] + p / n * ext, atol=1e-12)
+    shift = (quirk.vertices - centre.vertices).mean(axis=0)
+    assert np.all(shift > 0) and np.all(shift < ext / (n - 1))
+
+
+def test_smoothing_equals_pymcubes_constrained_smoothing():
+    """recon.smoothing builds the matrix without PyMCubes' Python loop; same function."""
+    import mcubes
+
+    from recon.smoothing import smooth_constrained
+    x, y, z = np.meshgrid(*[np.linspace(-1, 1, n) for n in (22, 25, 19)], indexing="ij")
+    b = (x ** 2 + y ** 2 + z ** 2 < 0.4) | (np.abs(z + 0.85) < 0.1) | \
+        ((np.abs(x - 0.5) < 0.1) & (np.abs(y) < 0.6))
+    b = np.pad(b, 1)
+    ours, theirs = smooth_constrained(b), mcubes.smooth(b)
+    assert np.abs(ours - theirs).max() < 1e-9
+    assert not np.array_equal(b, ours > 0)          # it did smooth something
 
 
 def test_cli_evaluate_reference_protocol(tmp_path, capsys, mi):
@@ -321,12 +391,130 @@ def test_cli_evaluate_reference_protocol(tmp_path, capsys, mi):
                  "0.5", "--protocol", "reference", "--no-sweep"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["protocol"] == "reference" and res["n_volume"] == 50_000
-    api, _ = metrics.evaluate_reference(vol.volume, vol.bounds, metrics.load_gt_mesh(gt),
-                                        threshold=0.5, sweep=None)
-    assert res["iou"] == api["iou"] > 0.7 and res["chamfer_sq"] == api["chamfer_sq"] < 1e-5
+    api, _ = ref.evaluate_reference(vol.volume, vol.bounds, metrics.load_gt_mesh(gt),
+                                    threshold=0.5, sweep=None, chamfer_sweep=None)
+    assert res["iou"] == api["iou"] > 0.7 and res["chamfer_sq"] == api["chamfer_sq"] < 2e-5
     assert res["psnr_depth"] > 25 and 0.9 < res["ssim_depth"] <= 1.0
     assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--protocol",
                  "reference", "--normalize", "max"]) == 2
     with pytest.raises(SystemExit) as exc:
         main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--protocol", "nope"])
     assert exc.value.code == 2
+
+
+# ------------------------------------------------------------ meshes and the ground truth
+
+def tiny_dataset_with_gt(path, mesh):
+    """A 2-ping dataset whose gt/ holds ``mesh`` (the placed mesh), written to ``path``."""
+    from sonarsim.dataset import SonarDataset
+    tx = np.array([[0.5, 0.0, 0.1], [0.0, 0.5, 0.1]])
+    bore = -tx / np.linalg.norm(tx, axis=1, keepdims=True)
+    SonarDataset(waveforms=np.zeros((2, 64), np.float32), tx=tx, rx=tx, boresight=bore,
+                 pulse=np.ones(8, np.float32), fs=100e3, sound_speed=343.0, source="test",
+                 gt_vertices=np.asarray(mesh.vertices, float),
+                 gt_faces=np.asarray(mesh.faces, np.int64)).write(path)
+
+
+def test_evaluate_mesh_closed_form():
+    """A mesh scores against the GT as a volume does: itself -> IoU 1 and the sampling
+    floor; the cube moved by two IoU cells along x -> IoU (s - d)/(s + d) exactly (cells of
+    5 mm, faces off the half-cell lattice) and the shifted-cube Chamfer."""
+    gt = cube_mesh()
+    same = metrics.evaluate_mesh(gt, gt, n_samples=4000)
+    # nearest samples across an edge pair faces at 90°: a floor of a few degrees
+    assert same["iou"] == 1.0 and same["chamfer_sq"] < 1e-5 and same["normal_error_deg"] < 5
+    moved = metrics.evaluate_mesh(gt.copy().apply_translation([D, 0, 0]), gt, n_samples=20_000)
+    assert moved["iou"] == pytest.approx((S - D) / (S + D), abs=1e-12)
+    expected_sq, expected_m = shifted_cube_chamfer(S, D)
+    assert moved["chamfer_sq"] == pytest.approx(expected_sq, rel=0.05)
+    assert moved["chamfer_m"] == pytest.approx(expected_m, rel=0.1)   # + the sampling floor
+    crop = [[-1, 1], [-1, 1], [0.0, 1]]                       # the upper half of the cube
+    half = metrics.evaluate_mesh(gt, gt, n_samples=4000, crop=crop)
+    assert half["iou"] == 1.0 and half["evaluated_bounds"][2][0] == 0.0
+    ref_same = ref.evaluate_reference_mesh(gt.copy().apply_translation([0, 0, 0.05]),
+                                           gt.copy().apply_translation([0, 0, 0.05]),
+                                           n_volume=20_000, n_surface=4000)
+    assert ref_same["chamfer_sq"] < 1e-5 and 0.5 < ref_same["iou"] < 1.0     # sampling ceiling
+
+
+def test_cli_evaluate_a_mesh_and_name_the_ground_truth(tmp_path, capsys, mi):
+    """`recon evaluate MESH.ply --gt ...` in both protocols; the output names the GT and its
+    frame; a raw mesh file that the volume's dataset placed elsewhere is scored as given and
+    a warning says so (stderr), the dataset's own GT matches silently."""
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+
+    placed = cube_mesh().apply_translation([0, 0, 0.05])      # inside both protocols' boxes
+    raw = placed.copy().apply_scale(2.0)                       # the file before the scene fit
+    raw.export(tmp_path / "raw.obj")
+    placed.export(tmp_path / "placed.ply")
+    tiny_dataset_with_gt(tmp_path / "d.h5", placed)
+    for protocol in ("exact", "reference"):
+        assert main(["evaluate", str(tmp_path / "placed.ply"), "--gt", str(tmp_path / "d.h5"),
+                     "--json", "--no-images", "--samples", "2000", "--volume-samples", "5000",
+                     "--protocol", protocol]) == 0
+        res = json.loads(capsys.readouterr().out)
+        assert res["kind"] == "mesh" and res["gt"]["kind"] == "dataset"
+        assert res["chamfer_sq"] < 2e-5 and res["warnings"] == []
+    assert res["iou"] > 0.5
+    vol = Volume(cube_volume(), BOX, "test", params={"dataset": str(tmp_path / "d.h5")})
+    vol.write(tmp_path / "v.h5")
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / "raw.obj"),
+                 "--no-images", "--no-sweep", "--samples", "1000", "--threshold", "0.5"]) == 0
+    out, err = capsys.readouterr()
+    assert "ground truth: " + str(tmp_path / "raw.obj") + " (mesh file" in out
+    assert err.count("\n") == 1 and "scored as given" in err and "d.h5" in err
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / "d.h5"),
+                 "--no-images", "--no-sweep", "--samples", "1000", "--threshold", "0.5"]) == 0
+    out, err = capsys.readouterr()
+    assert "(dataset: as the simulator placed it" in out and err == ""
+
+
+def test_degenerate_ground_truths_are_refused_or_warned_in_one_line(tmp_path, capsys):
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+
+    Volume(cube_volume(), BOX, "test").write(tmp_path / "v.h5")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 0.1 0 0\nv nan 0.1 0\nf 1 2 3\n")
+    (tmp_path / "line.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.2 0 0\nf 1 2 3\n")
+    for bad, words in (("nan.obj", "NaN"), ("line.obj", "degenerate")):
+        assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / bad)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err and "Traceback" not in err
+    trimesh.Trimesh([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0.01]], [[0, 1, 2]]).export(
+        tmp_path / "flat.obj")
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / "flat.obj"),
+                 "--no-images", "--no-sweep", "--samples", "500"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "encloses no volume" in err
+    open_box = trimesh.creation.box(extents=[0.05] * 3)
+    open_box.update_faces(np.arange(10))                        # one face of the box missing
+    open_box.export(tmp_path / "open.obj")
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / "open.obj"),
+                 "--no-images", "--no-sweep", "--samples", "500"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "open (" in err
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(tmp_path / "nan.obj").replace(
+        "nan.obj", "none.ply")]) == 2
+
+
+def test_reference_views_read_60_as_radians_like_pyrender(mi):
+    """yfov = 60 (radians, as pyrender receives the reference's '--fov 60'): tan(30) < 0, so
+    the render is the one with a 2·atan(|tan 30|) = 162° field of view turned by 180°; its
+    PSNR takes the data range from the reconstruction's images (torchmetrics, no range)."""
+    import dataclasses
+
+    from recon import views
+    cams = dataclasses.replace(views.REFERENCE_VIEWS, n_views=2, resolution=40)
+    wide = dataclasses.replace(cams, yfov=2 * np.arctan(abs(np.tan(30.0))))
+    assert np.degrees(wide.yfov) == pytest.approx(162.26, abs=0.01)
+    bunnyish = trimesh.creation.icosphere(subdivisions=3, radius=0.06).apply_translation(
+        [0.02, -0.01, 0.09])
+    a = views.render_views(bunnyish, cams)["depth"]
+    b = views.render_views(bunnyish, wide)["depth"]
+    assert a.max() > 0 and np.allclose(a, np.rot90(b, 2, axes=(1, 2)), atol=1e-6)
+    assert (a > 0).mean() < 0.1                          # a small object in a huge view
+    test = np.array([[0.0, 0.25], [0.3, 0.0]])
+    mse = np.mean((test - 0.1) ** 2)
+    assert views.psnr(np.full((2, 2), 0.1), test, data_range=None) == pytest.approx(
+        10 * np.log10(0.3 ** 2 / mse))

@@ -67,16 +67,16 @@ def test_every_cell_is_there_with_its_outputs(quick_run, table2):
 def test_stored_metrics_equal_a_fresh_evaluation_of_the_stored_volume(quick_run, table2):
     """The table's numbers are what recon.metrics gives for the stored volumes (wiring: the
     right volume, GT, threshold, crop and protocol options reach the evaluation)."""
-    from recon import export, metrics
+    from recon import export, metrics, protocol_reference
     from sonarsim.dataset import Volume
     settings = table2.SIZES["quick"]
     cells = _result(quick_run)["cells"]
     for c in [c for c in cells if c["method"] in ("bp", "pfa")][:3]:
         vol = Volume.read(c["volume"])
         gt = metrics.load_gt_mesh(c["dataset"])
-        ref, _ = metrics.evaluate_reference(vol.volume, vol.bounds, gt, threshold=0.2,
-                                            n_volume=settings.volume_samples,
-                                            n_surface=settings.samples, sweep=None)
+        ref, _ = protocol_reference.evaluate_reference(
+            vol.volume, vol.bounds, gt, threshold=0.2, n_volume=settings.volume_samples,
+            n_surface=settings.samples, sweep=None, chamfer_sweep=None)
         assert c["reference"]["iou"] == ref["iou"]
         assert c["reference"]["chamfer_sq"] == pytest.approx(ref["chamfer_sq"], rel=1e-12)
         crop = np.array([[-1e3, 1e3], [-1e3, 1e3], [table2.CROP_Z, 1e3]])
