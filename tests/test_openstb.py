@@ -216,6 +216,7 @@ def test_openstb_result_imports_with_its_configured_geometry(openstb_result):
                                atol=1e-12)
     np.testing.assert_allclose(ds.rx_boresight, ds.boresight, atol=1e-12)
     assert ds.meta["amplitude_model"] == "pressure"
+    assert ds.meta["openstb_ping_times"] == pytest.approx({"first": 0.0, "interval": INTERVAL})
     # the pulse: openSTB's chirp at the output rate, in Pa (RMS = the configured SPL)
     assert len(ds.pulse) == int(DURATION * ds.fs) + 1
     assert np.sqrt(2 * np.mean(ds.pulse ** 2)) == pytest.approx(10 ** (SPL / 20) * 1e-6, rel=0.02)

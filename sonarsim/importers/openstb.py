@@ -96,7 +96,10 @@ def read_openstb(path: str | os.PathLike, *, config: str | os.PathLike | None = 
     meta = dict(setup.get("meta") or {})
     meta.update({"openstb_baseband_frequency": f_bb, "openstb_sample_rate": rate,
                  "openstb_receivers": n_rx, "openstb_result": str(path)})
-    meta.setdefault("ping_start_time", np.repeat(ping_t, n_rx))
+    meta.pop("openstb_ping_times", None)
+    times = ping_schedule(ping_t)
+    if times is not None:
+        meta["openstb_ping_times"] = times
     if box is not None:
         meta["box"] = [[float(lo), float(hi)] for lo, hi in zip(box.lo, box.hi)]
     return SonarDataset(
@@ -110,6 +113,19 @@ def read_openstb(path: str | os.PathLike, *, config: str | os.PathLike | None = 
         start_sample=int(round(start)), gt_vertices=setup.get("gt_vertices"),
         gt_faces=setup.get("gt_faces"), snr_db=setup.get("snr_db"), seed=setup.get("seed"),
         meta=meta)
+
+
+def ping_schedule(ping_t: np.ndarray) -> dict | None:
+    """``{'first': s, 'interval': s}`` when the ping start times are evenly spaced (to 1 µs),
+    else None: what a dataset keeps of openSTB's ping times (a per-ping array would not fit
+    an HDF5 attribute for a full scan)."""
+    if len(ping_t) == 1:
+        return {"first": float(ping_t[0]), "interval": 0.0}
+    step = (ping_t[-1] - ping_t[0]) / (len(ping_t) - 1)
+    even = ping_t[0] + step * np.arange(len(ping_t))
+    if np.abs(ping_t - even).max() <= 1e-6:
+        return {"first": float(ping_t[0]), "interval": float(step)}
+    return None
 
 
 def passband(pressure: np.ndarray, t0: float, rate: float, f_bb: float, factor: int
@@ -244,8 +260,9 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
     ``baseband_frequency``: default the pulse's power-weighted mean frequency (Hz, rounded).
     ``sample_rate``: ``fs`` divided by a whole number (default ``fs``: lossless); refused when
     the pulse's band (99 % of its energy) does not fit in ``f_bb ± sample_rate/2``.
-    ``ping_start_time``: the dataset's meta ``ping_start_time`` if it has one, else nominal
-    times one record length apart (sonarsim datasets carry no ping times). The geometry,
+    ``ping_start_time``: the schedule an openSTB import recorded (meta
+    ``openstb_ping_times``, one receiver per ping), else nominal times one record length
+    apart (sonarsim datasets carry no ping times). The geometry,
     pulse and attributes go to the ``sonarsim`` group. Written to a temporary directory and
     renamed into place; an existing ``path`` needs ``force``.
     """
@@ -263,9 +280,10 @@ def write_openstb(dataset, path: str | os.PathLike, *, baseband_frequency: float
     t = (dataset.start_sample + np.arange(n_t)) / fs
     times = t[::factor]                    # = the decimated length, ceil(n_t / factor)
     meta = dict(dataset.meta)
-    ping_t = np.asarray(meta.pop("ping_start_time", np.arange(n) * (t[-1] + 1.0 / fs)),
-                        dtype=np.float64)
-    if ping_t.shape != (n,):
+    schedule = meta.pop("openstb_ping_times", None)
+    if isinstance(schedule, dict) and meta.get("openstb_receivers", 1) == 1:
+        ping_t = schedule["first"] + schedule["interval"] * np.arange(n)
+    else:                  # nominal: one record length apart
         ping_t = np.arange(n) * (t[-1] + 1.0 / fs)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
