@@ -31,7 +31,7 @@ test-fast: install
 
 # The Python API reference (pdoc, from the docstrings) into docs/api/ (not committed).
 docs: install
-	$(PY) -m pdoc --docformat markdown --output-directory docs/api sonarsim recon
+	$(PY) -m pdoc --docformat restructuredtext --output-directory docs/api sonarsim recon
 	@echo "API reference: docs/api/index.html"
 
 bench: install

@@ -25,6 +25,13 @@ def run(args: argparse.Namespace) -> int:
         return 0
     base = data.root()
     print(f"# shipped data in {base} (provenance: docs/data.md)")
+    folders: dict[str, list[str]] = {}
     for name in data.names():
-        print(f"{(base / name).stat().st_size:>10,d}  {name}")
+        if name.endswith(".csv"):               # raw LabVIEW scans: one line per folder
+            folders.setdefault(name.rsplit("/", 1)[0], []).append(name)
+        else:
+            print(f"{(base / name).stat().st_size:>10,d}  {name}")
+    for folder, files in folders.items():
+        size = sum((base / f).stat().st_size for f in files)
+        print(f"{size:>10,d}  {folder}/  ({len(files)} raw LabVIEW CSV files)")
     return 0

@@ -1,32 +1,25 @@
 """Data shipped with sonarsim: find it by name (provenance and licences: docs/data.md).
 
-==========================================  ================================================
-``meshes/bunny.obj``, ``cube.obj``,         ground-truth meshes of the reference's simulated
-``cylinder.obj``                            scenes (metres, standing on z = 0); Reed et al.
-                                            2023, repository Neural-Volumetric-Reconstruction-
-                                            for-Coherent-SAS, branch main2, data/gt_meshes
-``pulses/airsas_20khz_measured.npy``,       measured AirSAS pulses at 100 kHz, float64 [603]
-``airsas_5khz_measured.npy``                (same repository, data/wfm; the reference uses
-                                            the first 100 samples)
-``airsas_real/small_features_cutout_5k.h5``  a real AirSAS circular scan (360 pings at one
-                                            height, 5 kHz LFM) of a flat cut-out target,
-                                            background subtracted: a sonarsim dataset
-                                            (``sonarsim import-airsas SCAN --background BG``)
-``airsas_real/bg_5k.h5``                    the empty-turntable scan of the same rig, no
-                                            background subtracted (the direct TX -> RX path)
-``airsas_real/small_features_cutout_5k/``,  the first 6 raw LabVIEW flights of both scans
-``airsas_real/bg_5k/``                      (CSV; Coordinates.csv cut to them), for importers
-==========================================  ================================================
+- ``meshes/bunny.obj``, ``cube.obj``, ``cylinder.obj``: ground-truth meshes of the reference's
+  simulated scenes (metres, standing on z = 0; Reed et al. 2023, repository
+  Neural-Volumetric-Reconstruction-for-Coherent-SAS, branch main2, ``data/gt_meshes``).
+- ``pulses/airsas_20khz_measured.npy``, ``airsas_5khz_measured.npy``: measured AirSAS pulses at
+  100 kHz, float64 [603] (same repository, ``data/wfm``; the reference uses the first 100 samples).
+- ``airsas_real/small_features_cutout_5k.h5``: a real AirSAS circular scan (360 pings at one
+  height, 5 kHz LFM) of a flat cut-out target, background subtracted: a sonarsim dataset, as
+  ``sonarsim import-airsas SCAN --background BG`` writes it (:func:`real_scan`).
+- ``airsas_real/bg_5k.h5``: the empty-turntable scan of the same session, no background
+  subtracted; it holds the direct TX -> RX arrival (:func:`empty_scan`).
+- ``airsas_real/small_features_cutout_5k/``, ``airsas_real/bg_5k/``: the first 6 raw LabVIEW
+  flights of both scans (CSV; ``Coordinates.csv`` cut to them), for the importer.
 
 The scans come from Reed et al.'s repository CSAS_Deconvolution_INR
-(airsas_deconv_pipeline/airsas_data). ``SHA256SUMS`` lists every file's digest.
+(``airsas_deconv_pipeline/airsas_data``). ``SHA256SUMS`` lists every file's digest.
 
->>> from sonarsim import data
->>> data.path("bunny.obj")                      # a file name, or a path inside the data folder
-PosixPath('.../sonarsim/data/meshes/bunny.obj')
-
-A scene TOML may name a shipped mesh (``mesh = "bunny.obj"``) where no file of that name lies
-next to it; from a shell, ``sonarsim data path NAME`` prints the path.
+Example: ``data.path("bunny.obj")`` is the path of ``meshes/bunny.obj`` (a unique file name or
+a path relative to the data folder). A scene TOML may name a shipped mesh
+(``mesh = "bunny.obj"``) where no file of that name lies next to it; from a shell,
+``sonarsim data NAME`` prints a path and ``sonarsim data`` lists them all.
 """
 from __future__ import annotations
 
