@@ -17,7 +17,7 @@ import pytest
 zarr = pytest.importorskip("zarr")
 
 from recon import synthetic                                   # noqa: E402
-from recon.backprojection import backproject_numpy            # noqa: E402
+from recon.straightforward import backproject_numpy           # noqa: E402
 from recon.grid import Grid                                    # noqa: E402
 from sonarsim import signals                                   # noqa: E402
 from sonarsim.cli import main as sonarsim_main                 # noqa: E402
