@@ -176,13 +176,13 @@ class _Objective:
                              f"{dataset.waveform_kind!r} signals (use the dataset before "
                              "`recon deconvolve`)")
         self.chain = chain
-        self.data = np.asarray(dataset.waveforms, np.float64)
+        self.data = dataset.waveforms          # float32 [N, T]; batches are converted as used
         self.envelope = Envelope(dataset.pulse, dataset.n_samples)
         self._data_env: dict = {}
 
     def __call__(self, stage: str, hist: np.ndarray, batch: int, index: np.ndarray):
         model = self.chain.forward(hist)
-        y = self.data[index]
+        y = np.asarray(self.data[index], np.float64)
         if stage == "waveform":
             loss, alpha, grad = scaled_misfit(model, y)
         else:

@@ -218,3 +218,78 @@ def test_mesh_echo_gradients_match_finite_differences(mi, small_scene):
         assert grad[vi, axis] == pytest.approx(fd, rel=2e-2, abs=2e-2 * float(np.abs(grad[vi]).max()))
     # linear in the albedo
     assert dr.grad(rho)[0] == pytest.approx(objective(v, 1.0), rel=1e-4)
+
+
+# ------------------------------------------------------------------ the solver and the command
+
+@pytest.fixture(scope="module")
+def ball_scan(tmp_path_factory):
+    """A noiseless scan of a 3 cm sphere (no ground): 24 poses around it at two heights."""
+    from sonarsim import simulate as sim
+    from sonarsim.geometry import SceneBox, rig_poses
+    from sonarsim.scene import load_scene
+    from sonarsim.signals import pulse_from_spec
+    d = tmp_path_factory.mktemp("ball")
+    (d / "ball.toml").write_text('ground = false\nbox = {lo = [-0.1, -0.1, 0.0], hi = [0.1, 0.1, 0.15]}\n'
+                                 '[[object]]\nshape = "sphere"\nradius = 0.03\n'
+                                 'center = [0.0, 0.0, 0.06]\n')
+    spec = load_scene(d / "ball.toml")
+    angles = np.tile(np.arange(0, 360, 30.0), 2)
+    heights = np.repeat([0.05, 0.25], 12)
+    poses = rig_poses(angles, heights, box=SceneBox(np.array([-0.1, -0.1, 0.0]),
+                                                    np.array([0.1, 0.1, 0.15])))
+    out = d / "ball.h5"
+    sim.simulate(spec, poses, out, sim.SimulationSettings(
+        pulse=pulse_from_spec("lfm-20k", FS), surface_spacing=2e-3, seed=1))
+    return out
+
+
+def _radius_error(vertices) -> float:
+    """Mean radius error (m) of the upper half, the part the poses (all above it) see."""
+    upper = vertices[vertices[:, 2] > 0.065]
+    return float(np.mean(np.linalg.norm(upper - [0.0, 0.0, 0.06], axis=1)) - 0.03)
+
+
+def test_refine_shrinks_an_inflated_sphere_onto_the_scanned_one(mi, ball_scan):
+    """A real (short) refinement: start 5 mm too large; the surface must move most of the way."""
+    from sonarsim.dataset import SonarDataset
+    ds = SonarDataset.read(ball_scan)
+    start = trimesh.creation.icosphere(subdivisions=3, radius=0.035)
+    start.vertices += [0.0, 0.0, 0.06]
+    settings = refine.RefineSettings(envelope_steps=15, waveform_steps=15, lr=4e-3,
+                                     edge_length=8e-3, remesh_every=0, order=2,
+                                     pings_per_batch=12, visibility_every=2)
+    result = refine.solve(ds, start, settings, ground=None)
+    assert _radius_error(start.vertices) == pytest.approx(0.005, abs=1e-4)
+    assert abs(_radius_error(result.vertices)) < 0.0015
+    first = [h["loss"] for h in result.history if h["stage"] == "waveform"][:2]
+    last = [h["loss"] for h in result.history if h["stage"] == "waveform"][-2:]
+    assert np.mean(last) < 0.5 * np.mean(first)
+
+
+def test_refine_command_writes_a_mesh_and_refuses_bad_input(ball_scan, tmp_path, capsys):
+    from recon.cli import main
+    start = trimesh.creation.icosphere(subdivisions=2, radius=0.033)
+    start.vertices += [0.0, 0.0, 0.06]
+    init = tmp_path / "start.ply"
+    start.export(init)
+    out = tmp_path / "refined.ply"
+    args = [str(ball_scan), "--init", str(init), "--out", str(out), "--no-ground",
+            "--envelope-steps", "1", "--waveform-steps", "1", "--pings", "::2",
+            "--edge-length", "0.01", "--history", str(tmp_path / "h.json"), "--no-progress"]
+    assert main(["refine", *args]) == 0
+    mesh = trimesh.load(out)
+    assert len(mesh.faces) > 100 and np.all(np.isfinite(mesh.vertices))
+    import json
+    record = json.loads((tmp_path / "h.json").read_text())
+    assert [h["stage"] for h in record["history"]] == ["envelope", "waveform"]
+    assert record["settings"]["pings"] == 12
+    capsys.readouterr()
+    # an existing output is refused without --force; bad values are one line, exit 2
+    for bad, words in ((args, "file exists"),
+                       ([*args, "--force", "--order", "0"], "order must be a positive integer"),
+                       ([str(ball_scan), "--init", str(tmp_path / "none.ply"), "--out",
+                         str(tmp_path / "x.ply")], "not found")):
+        assert main(["refine", *bad]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -1,0 +1,110 @@
+"""``recon refine``: fit a mesh to a dataset's waveforms by gradient descent through the renderer."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from sonarsim.errors import InputError
+
+from . import _common
+
+HELP = ("Refine a surface mesh (from a volume's iso-surface or a mesh file) by fitting the "
+        "rendered waveforms to the dataset's (docs/refine.md).")
+OUTPUTS = ("out", "history")
+
+OPTION_HELP = {
+    "envelope_steps": "steps of stage 1 (matched-filter envelopes)",
+    "waveform_steps": "steps of stage 2 (raw waveforms)",
+    "lr": "UniformAdam step in metres of latent displacement (cosine decay to 1/10 per stage)",
+    "large_steps_lambda": "lambda of mi.ad.LargeSteps (larger = smoother updates)",
+    "edge_length": "target edge length of the isotropic remeshing (m)",
+    "remesh_every": "steps between remeshings (0: only the start mesh)",
+    "order": "quadrature points per triangle = ORDER^2",
+    "pings_per_batch": "pings rendered per step",
+    "visibility_every": "visits of a batch between its shadow-ray passes",
+    "fit_albedo": "fit the object's albedo relative to the ground's",
+    "ground_spacing": "quadrature cell of the ground (m)",
+    "oversample": "histogram bins per sample (default: the dataset's)",
+    "seed": "order of the batches",
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..refine import RefineSettings
+    parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) with received waveforms")
+    parser.add_argument("--init", type=Path, required=True,
+                        help="start: a volume (.h5, its iso-surface at --threshold) or a mesh "
+                             "(.ply/.obj/.stl/.off)")
+    parser.add_argument("--out", type=Path, required=True, help="refined mesh (.ply/.obj/.stl/.off)")
+    parser.add_argument("--threshold", type=float, default=0.2,
+                        help="iso-level of the normalised |volume| for a volume --init (default 0.2)")
+    parser.add_argument("--z-min", type=float, default=0.005,
+                        help="volume --init: clear voxels below this height (the ground's echo), m "
+                             "(default 0.005)")
+    parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
+                        help="fit only this slice of the pings (e.g. '::41')")
+    parser.add_argument("--no-ground", action="store_true",
+                        help="no ground in the model (default: the dataset's scene ground)")
+    parser.add_argument("--history", type=Path, default=None,
+                        help="also write the per-step record (loss, scale, albedo, time) as JSON")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    base = RefineSettings()
+    for f in dataclasses.fields(RefineSettings):
+        flag = "--" + f.name.replace("_", "-")
+        default = getattr(base, f.name)
+        text = f"{OPTION_HELP.get(f.name, '')} (default {default})"
+        if isinstance(default, bool):
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction,
+                                default=None, help=text)
+        else:
+            kind = float if isinstance(default, float) else int
+            parser.add_argument(flag, dest=f.name, type=kind, default=None, help=text)
+
+
+def settings_from_args(args):
+    from ..refine import RefineSettings
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(RefineSettings)
+             if getattr(args, f.name, None) is not None}
+    settings = RefineSettings(**given)
+    settings.validate()
+    return settings
+
+
+def initial_mesh(args):
+    """The start mesh of ``--init`` (a volume's iso-surface or a mesh file)."""
+    from ..refine import start_mesh
+    path = args.init
+    if not path.is_file():
+        raise InputError(f"--init {path}: file not found")
+    if path.suffix.lower() == ".h5":
+        from sonarsim.dataset import Volume
+        vol = Volume.read(path)
+        return start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min)
+    from sonarsim.scene import load_mesh
+    return load_mesh(path)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..export import write_mesh
+    from ..refine import solve
+    settings = settings_from_args(args)
+    if args.out.suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
+        raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
+    init = initial_mesh(args)
+    ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None))
+    index = _common.parse_slice(args.pings, ds.n_pings)
+    result = solve(ds, init, settings, ping_index=index, ground=None if args.no_ground else "dataset",
+                   progress=not args.no_progress, log=print)
+    write_mesh(args.out, result.mesh)
+    if args.history is not None:
+        from sonarsim.atomic import atomic_path
+        with atomic_path(args.history) as tmp:
+            tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
+                                       "history": result.history}, indent=1, default=str))
+    last = result.history[-1]
+    albedo = "" if result.albedo is None else f", albedo {result.albedo:.3f} of the ground's"
+    print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps; "
+          f"final {last['stage']} loss {last['loss']:.4f}{albedo}")
+    return 0
