@@ -1,6 +1,6 @@
 """Benchmark: transient rendering throughput of the ``sonar_transient`` wavefront integrator.
 
-Scene: the shared bunny mesh (metres, standing on z = 0) on a 0.4 × 0.4 m diffuse ground.
+Scene: the bunny mesh shipped with sonarsim (``sonarsim.data``) (metres, standing on z = 0) on a 0.4 × 0.4 m diffuse ground.
 Poses: an evenly spread subset of the reference cylindrical scan (360 angles × 150 heights),
 reference crop window (14 360 bins of c/(fs·20)), cone beams of 30°.
 
@@ -47,8 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sonarsim import data
+
 ROOT = Path(__file__).resolve().parents[1]
-MESH = ROOT.parent / "shared" / "data" / "meshes" / "bunny.obj"
+MESH = data.path("bunny.obj")
 FULL_SCAN_POSES = 54_000
 TARGET_SECONDS, TARGET_GB = 90.0, 2.0
 

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sonarsim import data
+
 ROOT = Path(__file__).resolve().parents[1]
 FULL_SCAN = 54_000
 
@@ -126,8 +128,10 @@ def part_scan(spec, args) -> None:
     from sonarsim import fidelity
     from sonarsim import simulate as sim
     from sonarsim.dataset import SonarDataset, stream
-    from sonarsim.halves import HalfRenderer
+    from sonarsim.runtime import mitsuba
     from sonarsim.signals import pulse_from_spec
+    mitsuba()
+    integrator = sys.modules["sonarsim.plugins.sonar_transient"].SonarTransientIntegrator
 
     poses, step = scan_subset(spec, args.poses)
     n = len(poses)
@@ -137,7 +141,7 @@ def part_scan(spec, args) -> None:
     out = workdir / "bunny.h5"
     prof = Profile()
     prof.wrap(sim, "choose_sampling", "pilot (density choice)")
-    prof.wrap(HalfRenderer, "render", "render (two halves)")
+    prof.wrap(integrator, "render_transients", "render (two halves)")
     prof.wrap(sim, "transients_to_waveforms", "pulse convolution + decimation")
     prof.wrap(fidelity.PingStats, "measure", "matched-filter statistics")
     prof.wrap(stream.DatasetStreamWriter, "write", "writing (HDF5)")
@@ -211,7 +215,7 @@ def main() -> int:
     parser.add_argument("--poses", type=int, default=2000, help="poses of the scan run")
     parser.add_argument("--snr-poses", type=int, default=48, help="poses of the SNR table")
     parser.add_argument("--threads", type=int, default=None, help="Dr.Jit threads (default: all)")
-    parser.add_argument("--mesh", type=Path, default=ROOT.parent / "shared/data/meshes/bunny.obj")
+    parser.add_argument("--mesh", type=Path, default=data.path("bunny.obj"))
     parser.add_argument("--keep", action="store_true", help="keep the output file")
     args = parser.parse_args()
 

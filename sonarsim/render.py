@@ -21,6 +21,7 @@ does). Bin width w = sound_speed / (fs · oversample); bin j covers
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -156,82 +157,180 @@ def chunk_memory(n_poses: int, paths_per_pose: int, bounces: int, n_bins: int,
     return chunk, chunk * _BYTES_PER_BIN * bounces * n_bins
 
 
-def estimator_props(bounce1: str | None = None, amplitude: str = "intensity",
-                    surface_spacing: float | None = None, speckle_seed: int = 0) -> dict:
-    """Integrator properties of the estimator settings (None: the integrator's default)."""
-    if amplitude not in AMPLITUDES:
-        raise InputError(f"amplitude must be one of {', '.join(AMPLITUDES)}, got {amplitude!r}")
-    if bounce1 is not None and bounce1 not in BOUNCE1_ESTIMATORS:
-        raise InputError(f"bounce1 must be one of {', '.join(BOUNCE1_ESTIMATORS)}, got {bounce1!r}")
-    props: dict = {"amplitude": amplitude}
-    if bounce1 is not None:
-        props["bounce1"] = bounce1
-    if surface_spacing is not None:
-        props["surface_spacing"] = float(surface_spacing)
-    if isinstance(speckle_seed, bool) or int(speckle_seed) != speckle_seed \
-            or not 0 <= speckle_seed < 2**32:
-        raise InputError(f"speckle_seed must be an integer in [0, 2^32), got {speckle_seed}")
-    props["speckle_seed"] = int(speckle_seed)
-    return props
+@dataclass(frozen=True)
+class RenderSettings:
+    """Everything that determines a render besides the scene, the poses and the window box.
+
+    paths_per_pose: TX-cone Monte-Carlo paths per pose (used with bounce1='cone'; the
+    surface estimator samples every bounce from its strata). bounces: histograms for
+    bounces 1…B. fs (Hz), oversample, sound_speed (m/s): bin width sound_speed / (fs ·
+    oversample) m. path_range: (LMIN, LMAX) round-trip metres (path_start = LMIN), else the
+    crop window of the scene box and the poses (:func:`path_window`). seed: 0 ≤ seed < 2³².
+    beams: overrides of :data:`DEFAULT_BEAMS` ('cone' | 'isotropic' | 'piston'; full
+    beamwidths in degrees; 'shading_normals'). bounce1: 'surface' | 'cone' (None: the
+    integrator's default, 'surface'); amplitude: 'intensity' | 'pressure' | 'coherent';
+    surface_spacing: strata size of the surface estimator in m (None: the integrator's);
+    speckle_seed: the coherent model's phases. chunk_size: poses per kernel launch (None:
+    from ``memory_budget`` bytes of histogram buffers).
+
+    :meth:`validate` is sonarsim's one check of every value (one-line :class:`InputError`
+    naming the command-line option), used by the Python API, the CLI and the batch alike;
+    the beam patterns and widths are checked by the integrator plugin
+    (:func:`make_integrator`), which also guards its own properties for users of
+    ``mi.load_dict``.
+    """
+
+    paths_per_pose: int = 10_000
+    bounces: int = 3
+    fs: float = 100e3
+    oversample: int = 20
+    sound_speed: float = DEFAULT_SOUND_SPEED
+    path_range: tuple | None = None
+    seed: int = 0
+    beams: Mapping | None = None
+    bounce1: str | None = None
+    amplitude: str = "intensity"
+    surface_spacing: float | None = None
+    speckle_seed: int = 0
+    chunk_size: int | None = None
+    memory_budget: int = DEFAULT_MEMORY_BUDGET
+
+    def replace(self, **changes) -> "RenderSettings":
+        """A copy with ``changes`` (field names; an unknown one is an InputError)."""
+        unknown = sorted(set(changes) - set(self.__dataclass_fields__))
+        if unknown:
+            raise InputError(f"unknown render setting(s) {', '.join(unknown)}; use "
+                             f"{', '.join(self.__dataclass_fields__)}")
+        return dataclasses.replace(self, **changes)
+
+    def validate(self) -> "RenderSettings":
+        """Check every setting; returns the settings with integers as ints, beams complete."""
+        for name, lo, hi in (("paths_per_pose", 1, _LANE_LIMIT), ("bounces", 1, 64),
+                             ("seed", 0, _LANE_LIMIT), ("oversample", 1, 10_000),
+                             ("speckle_seed", 0, _LANE_LIMIT)):
+            _check_int(name, getattr(self, name), lo, hi)
+        if self.chunk_size is not None:
+            _check_int("chunk_size", self.chunk_size, 1, _LANE_LIMIT)
+        _check_positive("fs", self.fs)
+        _check_positive("sound_speed", self.sound_speed)
+        _check_positive("memory_budget", self.memory_budget)
+        if self.path_range is not None:
+            try:
+                lo, hi = (float(v) for v in self.path_range)
+            except (TypeError, ValueError):
+                raise InputError(f"--path-range must be two lengths LMIN LMAX, got "
+                                 f"{self.path_range!r}") from None
+            if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+                raise InputError(f"--path-range must be two finite lengths LMIN < LMAX, got "
+                                 f"{self.path_range}")
+        if self.amplitude not in AMPLITUDES:
+            raise InputError(f"--amplitude must be one of {', '.join(AMPLITUDES)}, "
+                             f"got {self.amplitude!r}")
+        if self.bounce1 is not None and self.bounce1 not in BOUNCE1_ESTIMATORS:
+            raise InputError(f"--bounce1-estimator must be one of "
+                             f"{', '.join(BOUNCE1_ESTIMATORS)}, got {self.bounce1!r}")
+        if self.surface_spacing is not None:
+            if not (isinstance(self.surface_spacing, (int, float, np.number))
+                    and not isinstance(self.surface_spacing, bool)
+                    and math.isfinite(self.surface_spacing)
+                    and 1e-5 <= self.surface_spacing <= 10):
+                raise InputError(f"--surface-spacing must be in [1e-5, 10] m, got "
+                                 f"{self.surface_spacing}")
+            if self.bounce1 == "cone":
+                raise InputError("--surface-spacing needs --bounce1-estimator surface")
+        return dataclasses.replace(
+            self, paths_per_pose=int(self.paths_per_pose), bounces=int(self.bounces),
+            seed=int(self.seed), oversample=int(self.oversample),
+            speckle_seed=int(self.speckle_seed), beams=_beam_settings(self.beams),
+            chunk_size=None if self.chunk_size is None else int(self.chunk_size))
+
+    def integrator_props(self) -> dict:
+        """The ``sonar_transient`` properties of these settings."""
+        props = {"type": "sonar_transient", "max_bounces": int(self.bounces),
+                 **_beam_settings(self.beams), "amplitude": self.amplitude,
+                 "speckle_seed": int(self.speckle_seed)}
+        if self.bounce1 is not None:
+            props["bounce1"] = self.bounce1
+        if self.surface_spacing is not None:
+            props["surface_spacing"] = float(self.surface_spacing)
+        return props
+
+    @property
+    def buffers(self) -> int:
+        """Histogram buffers per pose and half: 2 for the complex 'coherent' model."""
+        return 2 if self.amplitude == "coherent" else 1
 
 
-def make_integrator(bounces: int = 3, beams: Mapping | None = None, *,
+def make_integrator(bounces: int | RenderSettings = 3, beams: Mapping | None = None, *,
                     bounce1: str | None = None, amplitude: str = "intensity",
                     surface_spacing: float | None = None, speckle_seed: int = 0):
-    """A ``sonar_transient`` integrator for ``bounces`` bounces, the given beam settings and
-    estimator settings (:func:`estimator_props`; docs/transient_rendering.md)."""
+    """A ``sonar_transient`` integrator of a :class:`RenderSettings` (or of these keyword
+    settings). Its plugin validates the estimator options; a refusal is one InputError line."""
     from . import runtime
+    settings = bounces if isinstance(bounces, RenderSettings) else RenderSettings(
+        bounces=bounces, beams=beams, bounce1=bounce1, amplitude=amplitude,
+        surface_spacing=surface_spacing, speckle_seed=speckle_seed)
+    props = settings.integrator_props()
     mi = runtime.mitsuba()
-    props = {"type": "sonar_transient", "max_bounces": int(bounces), **_beam_settings(beams),
-             **estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)}
     try:
         return mi.load_dict(props)
-    except (RuntimeError, ValueError) as exc:
-        raise InputError(f"bad integrator settings {props}: {exc}") from None
+    except (RuntimeError, ValueError) as exc:   # Mitsuba quotes the plugin's traceback
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        reason = lines[-1] if lines else type(exc).__name__
+        if "sonar_transient:" in reason:
+            reason = reason[reason.index("sonar_transient:"):]
+        raise InputError(f"integrator settings: {reason}") from None
 
 
-def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
-                fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
-                path_range=None, seed: int = 0, chunk_size: int | None = None,
-                beams: Mapping | None = None, box: SceneBox | None = None,
-                memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = False,
-                window: PathWindow | None = None, start: int = 0, stop: int | None = None,
-                bounce1: str | None = None, amplitude: str = "intensity",
-                surface_spacing: float | None = None, speckle_seed: int = 0,
-                halves: bool = False) -> Iterator[tuple[slice, np.ndarray]]:
+def _settings(settings: RenderSettings | None, overrides: Mapping) -> RenderSettings:
+    """``settings`` (default: RenderSettings()) with keyword ``overrides``, validated."""
+    base = settings if settings is not None else RenderSettings()
+    if not isinstance(base, RenderSettings):
+        raise InputError(f"settings must be a sonarsim.render.RenderSettings, got "
+                         f"{type(base).__name__}")
+    return base.replace(**overrides).validate()
+
+
+def iter_render(scene, poses: Poses, settings: RenderSettings | None = None, *,
+                window: PathWindow | None = None, box: SceneBox | None = None,
+                start: int = 0, stop: int | None = None, halves: bool = False,
+                progress: bool = False, **overrides) -> Iterator[tuple[slice, np.ndarray]]:
     """Yield ``(pose_slice, hist)`` per chunk, ``hist`` [n, bounces, T] for ``poses[pose_slice]``
     (float32; complex64 for amplitude 'coherent'), or [2, n, bounces, T] with ``halves``:
-    two independent half-estimates whose mean is the estimate.
+    two independent half-estimates whose mean is the estimate (paths of even and odd
+    index; the surface estimator's two jittered points per stratum).
 
-    Arguments as in :func:`render`; ``window`` (from :func:`path_window`) overrides the
-    window arguments. ``start``, ``stop``: render only poses start..stop−1 (default all);
-    slices are global indices into ``poses``. A pose's histogram depends only on its
-    global index, the seed and the settings, not on the chunking or on ``start``; the
-    default window is still computed over all of ``poses``.
+    ``settings`` (:class:`RenderSettings`) with keyword ``overrides`` of its fields (e.g.
+    ``bounces=1``). ``window`` (from :func:`path_window`) overrides the window settings;
+    ``box``: the scene box of the default window (default: the scene's bounding box).
+    ``start``, ``stop``: render only poses start..stop−1 (default all); slices are global
+    indices into ``poses``. A pose's histogram depends only on its global index, the seed
+    and the settings, not on the chunking or on ``start``; the default window is still
+    computed over all of ``poses``. The one render loop: ``render_poses``,
+    ``render_to_file`` and ``sonarsim.simulate`` all render through it.
     """
-    paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
-    props = estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)
-    buffers = (2 if halves else 1) * (2 if amplitude == "coherent" else 1)
+    s = _settings(settings, overrides)
+    _check_poses(poses)
     first, end = _check_range(start, stop, len(poses))
     if window is None:
-        window = path_window(scene, poses, fs=fs, oversample=oversample,
-                             sound_speed=sound_speed, path_range=path_range, box=box)
+        window = path_window(scene, poses, fs=s.fs, oversample=s.oversample,
+                             sound_speed=s.sound_speed, path_range=s.path_range, box=box)
     n = end - first
     if n == 0:
         return
-    chunk_size = chunk_poses(n, paths_per_pose, bounces, window.n_bins, chunk_size,
-                             memory_budget, buffers)
-    if halves and paths_per_pose < 2 and props.get("bounce1") == "cone":
-        raise InputError("two half-estimates need paths_per_pose >= 2")
-    integrator = make_integrator(bounces, beams, bounce1=bounce1, amplitude=amplitude,
-                                 surface_spacing=surface_spacing, speckle_seed=speckle_seed)
+    buffers = (2 if halves else 1) * s.buffers
+    chunk_size = chunk_poses(n, s.paths_per_pose, s.bounces, window.n_bins, s.chunk_size,
+                             s.memory_budget, buffers)
+    if halves and s.paths_per_pose < 2 and s.bounce1 == "cone":
+        raise InputError("two half-estimates need --paths-per-pose >= 2")
+    integrator = make_integrator(s)
     bar = progress_bar(n, progress, unit="pose", desc="render")
     try:
         for a in range(first, end, chunk_size):
             sl = slice(a, min(end, a + chunk_size))
             hist = integrator.render_transients(
                 scene, poses.tx[sl], poses.rx[sl], poses.tx_boresight[sl], poses.rx_boresight[sl],
-                window.path_start, window.bin_width, window.n_bins, paths_per_pose, seed,
+                window.path_start, window.bin_width, window.n_bins, s.paths_per_pose, s.seed,
                 pose_offset=a, halves=halves)
             bar.update(sl.stop - sl.start)
             yield sl, hist
@@ -239,52 +338,34 @@ def iter_render(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: i
         bar.close()
 
 
-def render_poses(scene, poses: Poses, *, paths_per_pose: int = 10_000, bounces: int = 3,
-           fs: float = 100e3, oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
-           path_range=None, seed: int = 0, chunk_size: int | None = None,
-           beams: Mapping | None = None, box: SceneBox | None = None,
-           memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True,
-           bounce1: str | None = None, amplitude: str = "intensity",
-           surface_spacing: float | None = None, speckle_seed: int = 0) -> Transients:
+def render_poses(scene, poses: Poses, settings: RenderSettings | None = None, *,
+                 box: SceneBox | None = None, progress: bool = True,
+                 **overrides) -> Transients:
     """Render energy transients [N, bounces, T] for every pose of ``poses``, in memory.
 
     scene: a Mitsuba scene (two-sided diffuse surfaces; the ground is one of its shapes).
-    paths_per_pose: TX-cone Monte-Carlo paths per pose (only with bounce1="cone"; the
-    surface estimator samples every bounce from its facets). bounces: histograms for bounces 1…B.
-    fs (Hz), oversample, sound_speed (m/s): bin width sound_speed / (fs · oversample) m.
-    path_range: (LMIN, LMAX) round-trip metres (path_start = LMIN), else the crop window of
-    ``box`` (default: the scene's bounding box) and the poses, aligned so that bin centres
-    j·oversample fall on the sample times (:func:`aligned_window`). seed: 0 ≤ seed < 2³². chunk_size: poses per
-    kernel launch (default from ``memory_budget`` bytes). beams: overrides of
-    :data:`DEFAULT_BEAMS` ('cone' | 'isotropic' | 'piston'; full beamwidths in degrees).
-    Values are the energy received from a unit-intensity TX: ∫ b_R L dω at the RX.
-    bounce1: 'surface' (stratified surface quadrature, the integrator's default) or 'cone'
-    (TX-cone path tracing); surface_spacing: its facet size in m (default: the
-    integrator's). amplitude: 'intensity' (energy) or 'pressure' (the seed's Eq. (1)); the
-    complex 'coherent' model cannot be stored in a float32 transients file (use
-    :func:`iter_render` or ``simulate``). speckle_seed: unused here.
+    ``settings`` (:class:`RenderSettings`) with keyword ``overrides`` of its fields; the
+    window is ``path_range`` or the crop window of ``box`` (default: the scene's bounding
+    box) and the poses, aligned so that bin centres j·oversample fall on the sample times
+    (:func:`aligned_window`). Values are the energy received from a unit-intensity TX:
+    ∫ b_R L dω at the RX ('intensity'), or the pressure of the seed's Eq. (1)
+    ('pressure'); the complex 'coherent' model cannot be stored in a float32 transients
+    file (use :func:`iter_render` or ``simulate``).
 
     The result holds N·bounces·T float32 values (9.3 GB for the 54 000-pose scan at 3
     bounces); :func:`render_to_file` streams the same values to a file instead.
     """
-    plan = _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed,
-                 path_range, seed, beams, box, bounce1, amplitude, surface_spacing,
-                 speckle_seed)
-    out = np.empty((len(poses), plan.bounces, plan.window.n_bins), np.float32)
-    for sl, hist in _plan_chunks(scene, poses, plan, chunk_size, memory_budget, progress):
+    plan = _plan(scene, poses, _settings(settings, overrides), box)
+    out = np.empty((len(poses), plan.settings.bounces, plan.window.n_bins), np.float32)
+    for sl, hist in _plan_chunks(scene, poses, plan, progress):
         out[sl] = hist
     return plan.transients(out, poses)
 
 
-def render_to_file(scene, poses: Poses, out, *, meta: Mapping | None = None,
-                   paths_per_pose: int = 10_000, bounces: int = 3, fs: float = 100e3,
-                   oversample: int = 20, sound_speed: float = DEFAULT_SOUND_SPEED,
-                   path_range=None, seed: int = 0, chunk_size: int | None = None,
-                   beams: Mapping | None = None, box: SceneBox | None = None,
-                   memory_budget: int = DEFAULT_MEMORY_BUDGET, progress: bool = True,
-                   bounce1: str | None = None, amplitude: str = "intensity",
-                   surface_spacing: float | None = None,
-                   speckle_seed: int = 0) -> tuple[Path, tuple[int, int, int], PathWindow]:
+def render_to_file(scene, poses: Poses, out, settings: RenderSettings | None = None, *,
+                   meta: Mapping | None = None, box: SceneBox | None = None,
+                   progress: bool = True,
+                   **overrides) -> tuple[Path, tuple[int, int, int], PathWindow]:
     """Render like :func:`render_poses` and write the transients file ``out`` chunk by chunk.
 
     Each chunk of poses is written to the file's ``transients`` dataset [N, bounces, T]
@@ -292,16 +373,13 @@ def render_to_file(scene, poses: Poses, out, *, meta: Mapping | None = None,
     bytes of histogram buffers, default 768 MiB), whatever the number of poses. The file
     is written under a temporary name in ``out``'s directory with root attribute
     ``complete = False`` and renamed to ``out`` only when every pose is in
-    (:func:`sonarsim.dataset.atomic_write_h5`); an interrupted run leaves no file at
-    ``out``. The file equals ``render_poses(...).write(out)`` with the same arguments and
-    ``meta`` merged into the transients' meta (the bytes of ``transients`` are the same
-    for the same ``chunk_size``; across chunk sizes up to a rare 1-ulp difference,
-    see the integrator's doc). Returns (out, (N, bounces, T), window).
+    (:func:`sonarsim.dataset.atomic_write_h5`); an interrupted run leaves no file at ``out``. The file equals ``render_poses(...).write(out)`` with the
+    same arguments and ``meta`` merged into the transients' meta (the bytes of
+    ``transients`` are the same for the same ``chunk_size``; across chunk sizes up to a
+    rare 1-ulp difference, see the integrator's doc). Returns (out, (N, bounces, T), window).
     """
-    plan = _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed,
-                 path_range, seed, beams, box, bounce1, amplitude, surface_spacing,
-                 speckle_seed)
-    shape = (len(poses), plan.bounces, plan.window.n_bins)
+    plan = _plan(scene, poses, _settings(settings, overrides), box)
+    shape = (len(poses), plan.settings.bounces, plan.window.n_bins)
     # A validated header: the real one but for a one-bin stand-in of the histograms.
     header = plan.transients(np.zeros(shape[:2] + (1,), np.float32), poses, meta)
 
@@ -310,7 +388,7 @@ def render_to_file(scene, poses: Poses, out, *, meta: Mapping | None = None,
         f.attrs["complete"] = False             # until the last chunk is in
         # Contiguous, no fill value: every pose is written exactly once.
         data = f.create_dataset("transients", shape=shape, dtype=np.float32)
-        for sl, hist in _plan_chunks(scene, poses, plan, chunk_size, memory_budget, progress):
+        for sl, hist in _plan_chunks(scene, poses, plan, progress):
             data[sl.start:sl.stop] = hist
             del hist
         f.attrs["complete"] = True
@@ -320,61 +398,46 @@ def render_to_file(scene, poses: Poses, out, *, meta: Mapping | None = None,
 
 @dataclass(frozen=True)
 class _Plan:
-    """Checked settings of one render: window, estimator properties and file metadata."""
+    """Checked settings of one render: the settings, the window and the file metadata."""
 
-    paths_per_pose: int
-    bounces: int
-    seed: int
+    settings: RenderSettings
     window: PathWindow
-    beams: Mapping | None
-    bounce1: str | None
-    amplitude: str
-    surface_spacing: float | None
-    speckle_seed: int
-    sound_speed: float
-    fs: float
-    oversample: int
     meta: dict
 
     def transients(self, data: np.ndarray, poses: Poses,
                    meta: Mapping | None = None) -> Transients:
         """The validated :class:`Transients` of ``data`` [N, bounces, T], ``meta`` added."""
+        s = self.settings
         return Transients(data, self.window.path_start, self.window.bin_width,
-                          self.sound_speed, self.fs, self.oversample, poses.tx, poses.rx,
+                          float(s.sound_speed), float(s.fs), s.oversample, poses.tx, poses.rx,
                           {**self.meta, **dict(meta or {})})
 
 
-def _plan(scene, poses, paths_per_pose, bounces, fs, oversample, sound_speed, path_range,
-          seed, beams, box, bounce1, amplitude, surface_spacing, speckle_seed) -> _Plan:
-    """Check the settings of :func:`render_poses`/:func:`render_to_file`; window and meta."""
-    paths_per_pose, bounces, seed = _check_settings(poses, paths_per_pose, bounces, seed)
-    props = estimator_props(bounce1, amplitude, surface_spacing, speckle_seed)
-    if amplitude == "coherent":
+def _plan(scene, poses, s: RenderSettings, box) -> _Plan:
+    """The window and meta of :func:`render_poses`/:func:`render_to_file` (settings checked)."""
+    _check_poses(poses)
+    if s.amplitude == "coherent":
         raise InputError("amplitude 'coherent' gives complex histograms, which a transients "
                          "file (float32) cannot hold; simulate a dataset instead")
-    if path_range is None and box is None:
+    make_integrator(s)                   # the estimator options, checked by the plugin
+    if s.path_range is None and box is None:
         box = scene_box(scene)
-    window = path_window(scene, poses, fs=fs, oversample=oversample, sound_speed=sound_speed,
-                         path_range=path_range, box=box)
-    meta = {"integrator": "sonar_transient", "mode": amplitude, "amplitude_model": amplitude,
-            "bounce1": props.get("bounce1", "surface"),
-            **{k: v for k, v in props.items() if k == "surface_spacing"},
-            "paths_per_pose": paths_per_pose, "bounces": bounces, "seed": seed,
-            "beams": _beam_settings(beams),
-            "window": "path_range" if path_range is not None else "crop_window"}
-    if path_range is None:
+    window = path_window(scene, poses, fs=s.fs, oversample=s.oversample,
+                         sound_speed=s.sound_speed, path_range=s.path_range, box=box)
+    meta = {"integrator": "sonar_transient", "mode": s.amplitude, "amplitude_model": s.amplitude,
+            "bounce1": s.bounce1 or "surface",
+            **({"surface_spacing": float(s.surface_spacing)}
+               if s.surface_spacing is not None else {}),
+            "paths_per_pose": s.paths_per_pose, "bounces": s.bounces, "seed": s.seed,
+            "beams": _beam_settings(s.beams),
+            "window": "path_range" if s.path_range is not None else "crop_window"}
+    if s.path_range is None:
         meta["window_box"] = np.stack([box.lo, box.hi], axis=1).tolist()   # [[x0,x1],[y0,y1],[z0,z1]] m
-    return _Plan(paths_per_pose, bounces, seed, window, beams, bounce1, amplitude,
-                 surface_spacing, speckle_seed, float(sound_speed), float(fs), int(oversample),
-                 meta)
+    return _Plan(s, window, meta)
 
 
-def _plan_chunks(scene, poses, plan: _Plan, chunk_size, memory_budget, progress):
-    return iter_render(scene, poses, paths_per_pose=plan.paths_per_pose, bounces=plan.bounces,
-                       seed=plan.seed, chunk_size=chunk_size, beams=plan.beams,
-                       memory_budget=memory_budget, progress=progress, window=plan.window,
-                       bounce1=plan.bounce1, amplitude=plan.amplitude,
-                       surface_spacing=plan.surface_spacing)
+def _plan_chunks(scene, poses, plan: _Plan, progress):
+    return iter_render(scene, poses, plan.settings, window=plan.window, progress=progress)
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -393,16 +456,21 @@ def _beam_settings(beams: Mapping | None) -> dict:
     return settings
 
 
-def _check_settings(poses, paths_per_pose, bounces, seed) -> tuple[int, int, int]:
+def _check_int(name: str, value, lo: int, hi: int) -> None:
+    """An integer in [lo, hi] (hi = 2³² − 1 is written [lo, 2^32)), else a one-line
+    InputError naming the command-line option."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value) or int(value) != value or not lo <= value <= hi:
+        bounds = f"[{lo}, 2^32)" if hi == _LANE_LIMIT else f"[{lo}, {hi}]"
+        raise InputError(f"--{name.replace('_', '-')} must be an integer in {bounds}, "
+                         f"got {value!r}")
+
+
+def _check_poses(poses) -> None:
     if not isinstance(poses, Poses):
         raise InputError(f"poses must be a sonarsim.geometry.Poses, got {type(poses).__name__}")
-    for name, value, lo, hi in (("paths_per_pose", paths_per_pose, 1, _LANE_LIMIT),
-                                ("bounces", bounces, 1, 64), ("seed", seed, 0, _LANE_LIMIT)):
-        if isinstance(value, bool) or int(value) != value or not lo <= value <= hi:
-            raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value}")
     if len(poses) > _LANE_LIMIT:
         raise InputError(f"at most {_LANE_LIMIT} poses per render")
-    return int(paths_per_pose), int(bounces), int(seed)
 
 
 def _check_range(start, stop, n: int) -> tuple[int, int]:
@@ -417,5 +485,6 @@ def _check_range(start, stop, n: int) -> tuple[int, int]:
 
 
 def _check_positive(name: str, value) -> None:
-    if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
-        raise InputError(f"{name} must be a positive number, got {value}")
+    if isinstance(value, bool) or not (isinstance(value, (int, float, np.number))
+                                       and math.isfinite(value) and value > 0):
+        raise InputError(f"--{name.replace('_', '-')} must be a positive number, got {value}")

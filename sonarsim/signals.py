@@ -153,11 +153,16 @@ def pulse_from_spec(spec: str | os.PathLike, fs: float = AIRSAS_FS,
 
     A named LFM ('lfm-20k', ...), ``lfm:F0:F1:DUR[:TUKEY]`` or a measured ``.npy`` file;
     ``max_samples`` truncates a measured pulse (the reference keeps the first 100 samples
-    of the measured AirSAS pulses).
+    of the measured AirSAS pulses). ``fs`` and an LFM's duration are checked against
+    :mod:`sonarsim.limits` before any sample is made (one-line InputError), so an absurd
+    sample rate is refused, not allocated.
     """
+    from . import limits
+    limits.check_fs(float(fs))
     text = os.fspath(spec).strip()
     low = text.lower()
     if low in NAMED_PULSES:
+        limits.check_pulse_length(round(NAMED_PULSES[low][2] * fs), fs, f"pulse {low}")
         return Pulse(named_pulse(low, fs), float(fs), low)
     if low.startswith("lfm:"):
         parts = text.split(":")[1:]
@@ -169,6 +174,8 @@ def pulse_from_spec(spec: str | os.PathLike, fs: float = AIRSAS_FS,
             raise InputError(f"pulse '{text}': F0, F1, DUR (and TUKEY) must be numbers") from None
         f0, f1, dur = values[:3]
         ratio = values[3] if len(values) == 4 else 0.1
+        if math.isfinite(dur) and dur > 0:
+            limits.check_pulse_length(round(dur * fs), fs, f"pulse {text}")
         return Pulse(lfm(f0, f1, dur, fs, window_ratio=ratio), float(fs), text)
     if low.endswith(".npy"):
         return Pulse(load_pulse(text, max_samples), float(fs), text)

@@ -24,8 +24,9 @@ The pipeline follows the reference (reference code `airsas/reconstruct_from_nump
    is σ·z_i with z_i drawn from its own generator seeded by (seed, i), so it does not
    depend on the chunking or on where a run was resumed.
 
-**Fidelity.** Every pose is rendered as two independent half-estimates
-(:class:`sonarsim.halves.HalfRenderer`); the dataset holds their mean, and their half
+**Fidelity.** Every pose is rendered as two independent half-estimates in one launch
+(``sonarsim.render.iter_render(..., halves=True)``, the one render loop); the dataset holds
+their mean, and their half
 difference gives the Monte-Carlo SNR after matched filtering stored as
 ``meta['mc_snr_db']`` (:mod:`sonarsim.fidelity`). Without an explicit density a pilot
 chooses it for ``mc_snr_db`` (:func:`choose_sampling`). docs/simulation.md "What fidelity
@@ -53,8 +54,6 @@ cores) only changes the speed.
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -68,13 +67,13 @@ from . import __version__
 from .dataset import DatasetStreamWriter, TransientsLayout, inspect
 from .errors import FormatError, InputError
 from .geometry import CropWindow, Poses, crop_window
-from .render import (DEFAULT_BEAMS, DEFAULT_MEMORY_BUDGET, DEFAULT_SOUND_SPEED, PathWindow,
-                     aligned_window, choose_chunk_size)
+from .render import (DEFAULT_BEAMS, DEFAULT_SOUND_SPEED, PathWindow, RenderSettings,
+                     aligned_window, iter_render, make_integrator)
 from .scene import SceneSpec
 from .signals import REFERENCE_PULSE_SAMPLES, Pulse, analytic, fft_upsample
+from .identity import digest
 from .fidelity import PingStats, mc_snr_from_energies, noise_budget, snr_db
-from .halves import (Estimator, HalfRenderer, Sampling, default_surface_spacing, half_seed,
-                     make_integrator)
+from .halves import Sampling, default_surface_spacing, half_seed
 from .progress import progress_bar
 from .threads import dr_threads
 
@@ -91,6 +90,32 @@ def simulation_window(poses: Poses, spec: SceneSpec, pulse: Pulse, sound_speed: 
                        pulse_samples=min(len(pulse.samples), REFERENCE_PULSE_SAMPLES))
     width = sound_speed / (pulse.fs * oversample)
     return crop, aligned_window(crop, width, oversample)
+
+
+def preflight(spec: SceneSpec, poses: Poses,
+              settings: "SimulationSettings") -> tuple[CropWindow, PathWindow]:
+    """Every check of a simulation that needs no rendering, before any work: the settings
+    (:meth:`SimulationSettings.validate`), the sample rate and pulse length
+    (:mod:`sonarsim.limits`), a pulse that is not all zero, and the memory estimate.
+    One-line :class:`InputError` naming the command-line option; ``sonarsim simulate`` and
+    ``sonarsim batch`` (each job, while planning) call it alike. Returns the crop window
+    and the aligned histogram window."""
+    from . import limits
+    pulse = settings.pulse
+    limits.check_fs(pulse.fs)
+    limits.check_pulse_length(len(pulse.samples), pulse.fs, f"pulse {pulse.spec}")
+    if not np.any(pulse.samples):
+        raise InputError(f"pulse {pulse.spec} is all zero: every waveform would be zero")
+    settings.validate()
+    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed,
+                                     settings.oversample)
+    need, detail = limits.simulate_memory(len(poses), settings.bounces, window.n_bins,
+                                          crop.num_samples, len(pulse.samples),
+                                          settings.oversample, settings.chunk_size,
+                                          CONVOLVE_BLOCK)
+    limits.check_memory(need, "the simulation", detail,
+                        "lower --fs or --oversample, shorten the pulse or simulate fewer poses")
+    return crop, window
 
 
 def oversampled_pulse(pulse: np.ndarray, oversample: int) -> np.ndarray:
@@ -198,45 +223,52 @@ class SimulationSettings:
     log: Callable[[str], None] | None = None
 
     def validate(self) -> None:
-        for name, lo in (("bounces", 1), ("oversample", 1), ("seed", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < lo:
-                raise InputError(f"{name} must be an integer >= {lo}, got {value}")
+        """Check every setting once (one-line InputError naming the command-line option):
+        the render settings by :meth:`sonarsim.render.RenderSettings.validate` and the
+        integrator plugin, the rest here."""
         if self.paths_per_pose is not None and (
-                isinstance(self.paths_per_pose, bool) or int(self.paths_per_pose) != self.paths_per_pose
-                or self.paths_per_pose < 2):
-            raise InputError(f"paths_per_pose must be an integer >= 2 (two half-estimates), "
+                isinstance(self.paths_per_pose, bool)
+                or not isinstance(self.paths_per_pose, (int, float, np.number))
+                or not math.isfinite(self.paths_per_pose)
+                or int(self.paths_per_pose) != self.paths_per_pose or self.paths_per_pose < 2):
+            raise InputError(f"--paths-per-pose must be an integer >= 2 (two half-estimates), "
                              f"got {self.paths_per_pose}")
-        if self.surface_spacing is not None and not (math.isfinite(self.surface_spacing)
-                                                     and self.surface_spacing > 0):
-            raise InputError(f"surface_spacing must be positive, got {self.surface_spacing}")
-        if self.seed >= 2**31:
-            raise InputError(f"seed must be < 2^31, got {self.seed}")
+        self.render_settings().validate()
+        if isinstance(self.seed, bool) or int(self.seed) != self.seed or not 0 <= self.seed < 2**31:
+            raise InputError(f"--seed must be an integer in [0, 2^31), got {self.seed}")
         if self.bounce_set is not None:
             if not self.bounce_set or any(b < 1 or b > self.bounces for b in self.bounce_set):
                 raise InputError(f"bounce set {list(self.bounce_set)} must be within "
                                  f"1..{self.bounces} (the rendered bounces)")
         for name in ("snr_db", "mc_snr_db"):
             value = getattr(self, name)
-            if value is not None and not math.isfinite(value):
-                raise InputError(f"{name} must be finite, got {value}")
-        if not (math.isfinite(self.sound_speed) and self.sound_speed > 0):
-            raise InputError(f"sound_speed must be positive, got {self.sound_speed}")
-        if self.threads is not None and (int(self.threads) != self.threads or self.threads < 1):
-            raise InputError(f"threads must be a positive integer, got {self.threads}")
-        self.estimator.validate()
-        if self.keep_transients and self.estimator.complex:
+            if value is not None and not (isinstance(value, (int, float, np.number))
+                                          and math.isfinite(value)):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number, "
+                                 f"got {value}")
+        from .threads import check_threads
+        check_threads(self.threads)
+        if self.keep_transients and self.amplitude == "coherent":
             raise InputError(f"--keep-transients stores energy histograms; amplitude "
                              f"'{self.amplitude}' renders complex ones (not stored)")
+        make_integrator(self.render_settings())    # the plugin checks the estimator options
+
+    def render_settings(self, sampling: Sampling | None = None) -> RenderSettings:
+        """The :class:`sonarsim.render.RenderSettings` of this simulation at ``sampling``
+        (default: the explicit density, else the pilot's base density)."""
+        paths = sampling.paths_per_pose if sampling is not None else self.paths_per_pose
+        spacing = sampling.surface_spacing if sampling is not None else self.surface_spacing
+        return RenderSettings(
+            paths_per_pose=paths if paths is not None else DEFAULT_PATHS_PER_POSE,
+            bounces=self.bounces, fs=self.pulse.fs, oversample=self.oversample,
+            sound_speed=self.sound_speed, seed=self.seed, beams=self.beams,
+            bounce1=self.bounce1, amplitude=self.amplitude, surface_spacing=spacing,
+            speckle_seed=self.speckle_seed, chunk_size=self.chunk_size)
 
     @property
     def bounce_index(self) -> list[int]:
         chosen = self.bounce_set or tuple(range(1, self.bounces + 1))
         return sorted({b - 1 for b in chosen})
-
-    @property
-    def estimator(self) -> Estimator:
-        return Estimator(self.bounce1, self.amplitude, int(self.speckle_seed))
 
     @property
     def automatic(self) -> bool:
@@ -255,8 +287,10 @@ class SimulationSettings:
 
 
 def _stderr(message: str) -> None:
-    import sys
-    print(f"sonarsim simulate: {message}", file=sys.stderr)
+    """The default notice channel: the ``sonarsim.simulate`` logger at INFO (the CLI shows
+    it on stderr as ``sonarsim simulate: ...``; ``--quiet`` silences it)."""
+    import logging
+    logging.getLogger(__name__).info(message)
 
 
 def scratch_path(out: Path) -> Path:
@@ -275,12 +309,11 @@ def simulate(spec: SceneSpec, poses: Poses, out: str | os.PathLike, settings: Si
     density used and the measured fidelity (``mc_snr_db``; with noise also
     ``effective_snr_db``; :mod:`sonarsim.fidelity`).
     """
-    settings.validate()
     out = Path(out)
     if not out.parent.is_dir():
         raise InputError(f"{out}: output directory does not exist")
     pulse = settings.pulse
-    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
+    crop, window = preflight(spec, poses, settings)
     scene = spec.to_mitsuba()
     with dr_threads(settings.threads):
         sampling, choice = choose_sampling(scene, poses, settings, crop, window)
@@ -400,17 +433,15 @@ def measure_fidelity(scene, poses: Poses, settings: SimulationSettings, sampling
     """
     import time
     from .fidelity import mf_energy
-    renderer = HalfRenderer(scene, settings.bounces, settings.beams, settings.estimator,
-                            sampling, window, settings.seed if seed is None else seed)
+    render = settings.render_settings(sampling).replace(
+        seed=settings.seed if seed is None else seed)
     pulse_os = oversampled_pulse(settings.pulse.samples, settings.oversample)
-    chunk = _chunk_size(settings, sampling, window, len(poses))
     groups = _groups(settings, sampling)
     total = noise = 0.0
     by_group = dict.fromkeys(groups, 0.0)
     t0 = time.perf_counter()
-    for a in range(0, len(poses), chunk):
-        sl = slice(a, min(len(poses), a + chunk))
-        mean, diff = renderer.render(poses, sl)
+    for _, both in iter_render(scene, poses, render, window=window, halves=True):
+        mean, diff = _mean_and_difference(both)
         stats = _chunk_stats(mean, diff, pulse_os, settings, crop)[1]
         total += float(stats.mf_total.sum())
         noise += float(stats.mf_noise.sum())
@@ -437,8 +468,10 @@ def choose_sampling(scene, poses: Poses, settings: SimulationSettings, crop: Cro
     :data:`PILOT_REFINEMENTS` more pilots at the planned density refit the law. At most
     :data:`MAX_AUTO_PATHS` paths per pose and strata no smaller than
     :data:`MIN_AUTO_SPACING`; if a cap binds the run says so once, with the SNR it expects.
+    Never coarser than the base density (the integrator's strata, 10 000 paths): the law
+    is not extrapolated below the pilots.
     """
-    integrator = make_integrator(settings.bounces, settings.beams, settings.estimator)
+    integrator = make_integrator(settings.render_settings())
     spacing = (settings.surface_spacing if settings.surface_spacing is not None
                else default_surface_spacing(integrator))
     paths = settings.paths_per_pose or DEFAULT_PATHS_PER_POSE
@@ -501,11 +534,15 @@ def _plan(base: Sampling, s0: Sampling, r0: dict, s1: Sampling, r1: dict, target
     slope = min(40.0, max(10.0, slope))
     factor = (n1 / budget) ** (10.0 / slope)       # density relative to s1
 
+    # Never coarser than the base density (the integrator's default strata, the base
+    # paths): the power law is measured between the pilots, and a coarser density
+    # extrapolated from them (e.g. 161 mm strata for centimetre objects, issue 24) misses
+    # its target; the base density costs little and measured at least the pilot's SNR.
     def build(max_paths: int, min_spacing: float) -> Sampling:
         if s1.surface_spacing is not None:         # the paths do not matter then
-            return Sampling(base.paths_per_pose,
-                            max(min_spacing, s1.surface_spacing / math.sqrt(factor)))
-        p = min(int(max_paths), max(2, math.ceil(s1.paths_per_pose * factor)))
+            spacing = min(base.surface_spacing, s1.surface_spacing / math.sqrt(factor))
+            return Sampling(base.paths_per_pose, max(min_spacing, spacing))
+        p = min(int(max_paths), max(2, base.paths_per_pose, math.ceil(s1.paths_per_pose * factor)))
         return Sampling(p + p % 2, None)
 
     chosen = build(MAX_AUTO_PATHS, MIN_AUTO_SPACING)
@@ -515,14 +552,11 @@ def _plan(base: Sampling, s0: Sampling, r0: dict, s1: Sampling, r1: dict, target
 
 # ----------------------------------------------------------------------------- rendering
 
-def _chunk_size(s: SimulationSettings, sampling: Sampling, window: PathWindow, n: int) -> int:
-    """Poses per launch: two halves (complex: twice the bytes) within the memory budget."""
-    if s.chunk_size is not None:
-        return int(s.chunk_size)
-    budget = DEFAULT_MEMORY_BUDGET // (4 if s.estimator.complex else 2)
-    limit = choose_chunk_size(max(1, sampling.paths_per_pose // 2), s.bounces, window.n_bins,
-                              budget)
-    return max(1, math.ceil(n / math.ceil(n / limit))) if n else 1
+def _mean_and_difference(both: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, half difference) [n, B, T] of two half-estimates [2, n, B, T]."""
+    a, b = both[0], both[1]
+    dtype = np.result_type(a, np.float32)
+    return ((a + b) * 0.5).astype(dtype), ((a - b) * 0.5).astype(dtype)
 
 
 def _chunk_stats(mean: np.ndarray, diff: np.ndarray, pulse_os: np.ndarray,
@@ -581,7 +615,7 @@ def _scratch_measures(path: Path, meta: dict) -> dict | None:
         with inspect(path) as (_, fields):
             stored = dict(fields["meta"])
             found = {k: stored.pop(k) for k in ("mc_snr_db", "mc_noise_energy") if k in stored}
-            if _digest(stored) == _digest(meta) and len(found) == 2:
+            if digest(stored) == digest(meta) and len(found) == 2:
                 measured = found
     except FormatError:
         measured = None
@@ -592,19 +626,7 @@ def _scratch_measures(path: Path, meta: dict) -> dict | None:
 
 def _run_id(common: dict, meta: dict) -> str:
     """A digest of everything that determines the noiseless data (detects stale scratch files)."""
-    digest = hashlib.sha256(_digest(meta).encode())
-    for key in sorted(common):
-        value = common[key]
-        digest.update(key.encode())
-        if isinstance(value, np.ndarray):
-            digest.update(np.ascontiguousarray(value).tobytes())
-        else:
-            digest.update(repr(value).encode())
-    return digest.hexdigest()[:24]
-
-
-def _digest(value) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
+    return digest(meta, common)
 
 
 def _render_into(writer: DatasetStreamWriter, scene, poses: Poses, s: SimulationSettings,
@@ -619,17 +641,17 @@ def _render_into(writer: DatasetStreamWriter, scene, poses: Poses, s: Simulation
     spans = writer.missing_ranges(max(1, len(poses)))   # maximal runs of missing poses
     if not spans:
         return
-    renderer = HalfRenderer(scene, s.bounces, s.beams, s.estimator, sampling, window, s.seed)
+    render = s.render_settings(sampling)
     pulse_os = oversampled_pulse(s.pulse.samples, s.oversample)
-    chunk = _chunk_size(s, sampling, window, sum(b - a for a, b in spans))
     bar = progress_bar(len(poses), progress, unit="ping", desc="simulate",
                        initial=writer.n_done)
     try:
         with dr_threads(s.threads):
             for first, end in spans:
-                for a in range(first, end, chunk):
-                    sl = slice(a, min(end, a + chunk))
-                    mean, diff = renderer.render(poses, sl)
+                for sl, both in iter_render(scene, poses, render, window=window, start=first,
+                                            stop=end, halves=True):
+                    mean, diff = _mean_and_difference(both)
+                    del both
                     wf, stats = _chunk_stats(mean, diff, pulse_os, s, crop)
                     del diff
                     writer.write(sl.start, wf, mean if writer.layout is not None else None,

@@ -102,34 +102,16 @@ def beams_from_args(args: argparse.Namespace) -> dict:
 
 
 def check_common(args: argparse.Namespace) -> None:
-    """Range checks of the shared options (one-line InputError)."""
+    """Checks of the shared options that only the command line has (one-line InputError):
+    --reference-parity against --amplitude, the output directory. The values themselves
+    are checked by the settings (:meth:`sonarsim.render.RenderSettings.validate`,
+    :meth:`sonarsim.simulate.SimulationSettings.validate`), the one rule for the Python API,
+    the command line and the batch."""
     if args.amplitude is None:
         args.amplitude = "intensity"
     elif args.reference_parity and args.amplitude != "intensity":
         raise InputError(f"--reference-parity selects --amplitude intensity; it contradicts "
                          f"--amplitude {args.amplitude}")
-    if args.surface_spacing is not None and not 1e-5 <= args.surface_spacing <= 10:
-        raise InputError(f"--surface-spacing must be in [1e-5, 10] m, got {args.surface_spacing}")
-    if args.surface_spacing is not None and args.bounce1_estimator == "cone":
-        raise InputError("--surface-spacing needs --bounce1-estimator surface")
-    if not 0 <= args.speckle_seed < 2**32:
-        raise InputError(f"--speckle-seed must be in [0, 2^32), got {args.speckle_seed}")
-    if args.paths_per_pose is not None and args.paths_per_pose < 1:
-        raise InputError(f"--paths-per-pose must be >= 1, got {args.paths_per_pose}")
-    for name in ("oversample",):
-        if getattr(args, name) < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.bounces is not None and args.bounces < 1:
-        raise InputError(f"--bounces must be >= 1, got {args.bounces}")
-    if not 0 <= args.seed < 2**32:
-        raise InputError(f"--seed must be in [0, 2^32), got {args.seed}")
-    for name in ("sound_speed", "fs"):
-        if not getattr(args, name) > 0:
-            raise InputError(f"--{name.replace('_', '-')} must be positive")
-    if args.chunk_size is not None and args.chunk_size < 1:
-        raise InputError(f"--chunk-size must be >= 1, got {args.chunk_size}")
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads must be >= 1, got {args.threads}")
     if not args.out.parent.is_dir():
         raise InputError(f"{args.out}: output directory does not exist")
 

@@ -8,7 +8,6 @@ starts over).
 from __future__ import annotations
 
 import argparse
-import sys
 
 from ..errors import InputError
 from ._render_common import (add_render_arguments, add_scene_and_pose_arguments,
@@ -92,32 +91,21 @@ def _check_before_pulse(args: argparse.Namespace) -> None:
 
 
 def _preflight(args: argparse.Namespace, spec, poses, settings) -> bool:
-    """Bounds and memory estimate before any work; True when ``--out`` already holds this
-    very run (reported, nothing to do). An existing other file needs ``--force``."""
-    import numpy as np
-
-    from .. import limits, outputs
-    from ..simulate import CONVOLVE_BLOCK, simulation_window
-    pulse = settings.pulse
-    limits.check_fs(args.fs)
-    limits.check_pulse_length(len(pulse.samples), pulse.fs, f"pulse {pulse.spec}")
-    if not np.any(pulse.samples):
-        raise InputError(f"pulse {pulse.spec} is all zero: every waveform would be zero")
-    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
-    need, detail = limits.simulate_memory(len(poses), settings.bounces, window.n_bins,
-                                          crop.num_samples, len(pulse.samples),
-                                          settings.oversample, settings.chunk_size,
-                                          CONVOLVE_BLOCK)
-    limits.check_memory(need, "the simulation", detail,
-                        "lower --fs or --oversample, shorten the pulse or simulate fewer poses")
-    request = outputs.digest(spec, poses.tx, poses.rx, poses.tx_boresight, poses.rx_boresight,
-                             {k: v for k, v in vars(settings).items()
-                              if k not in ("chunk_size", "threads", "log")})
+    """The library's checks before any work (:func:`sonarsim.simulate.preflight`), then
+    the output: True when ``--out`` already holds this very run (reported, nothing to
+    do). An existing other file needs ``--force``."""
+    from .. import outputs
+    from ..identity import digest
+    from ..simulate import preflight
+    preflight(spec, poses, settings)
+    request = digest(spec, poses.tx, poses.rx, poses.tx_boresight, poses.rx_boresight,
+                     {k: v for k, v in vars(settings).items()
+                      if k not in ("chunk_size", "threads", "log")})
     settings.extra_meta["request_id"] = request
     if args.out.exists() and not args.force:
         if outputs.finished_request(args.out, request):
             print(f"{args.out}: already complete (same scene, poses and settings); nothing "
-                  "to do (--force renders it again)", file=sys.stderr)
+                  "to do (--force renders it again)")
             return True
         raise InputError(f"--out {args.out}: file exists (not this run's result); pass "
                          "--force to replace it")
@@ -141,11 +129,6 @@ def run(args: argparse.Namespace) -> int:
                              f"--bounce-set {args.bounce_set}")
         bounce_set = REFERENCE_BOUNCES
     bounces = args.bounces or (max(bounce_set) if bounce_set else DEFAULT_BOUNCES)
-    if args.mc_snr_db is not None and args.mc_snr_db != args.mc_snr_db:
-        raise InputError("--mc-snr-db must be a number")
-    if args.paths_per_pose is not None and args.paths_per_pose < 2:
-        raise InputError(f"--paths-per-pose must be >= 2 (two half-estimates), "
-                         f"got {args.paths_per_pose}")
     if args.pulse_samples is not None and args.pulse_samples < 2:
         raise InputError(f"--pulse-samples must be >= 2, got {args.pulse_samples}")
     spec = load_scene(args.scene)
@@ -170,6 +153,5 @@ def run(args: argparse.Namespace) -> int:
              else f"effective SNR {meta.get('effective_snr_db', float('nan')):.1f} dB")
     print(f"wrote {out}: {len(poses)} pings, {noise}, Monte-Carlo SNR "
           f"{meta.get('mc_snr_db', float('nan')):.1f} dB after matched filtering "
-          f"({(meta.get('sampling') or {}).get('sampling', '?')}), pulse {settings.pulse.spec}",
-          file=sys.stderr)
+          f"({(meta.get('sampling') or {}).get('sampling', '?')}), pulse {settings.pulse.spec}")
     return 0
