@@ -348,8 +348,10 @@ def _occluded(origins, target, triangles):
     return hit
 
 
-def brute_force_single_bounce(triangles, albedo, tx, rx, tx_dir, rx_dir, half_angle, n_sub):
-    """Single scattering by midpoint quadrature on n_sub² sub-triangles per triangle.
+def brute_force_single_bounce(triangles, albedo, tx, rx, tx_dir, rx_dir, half_angle, n_sub,
+                              rx_half_angle=None):
+    """Single scattering by midpoint quadrature on n_sub² sub-triangles per triangle; cone
+    beams of half-angle ``half_angle`` (the RX's ``rx_half_angle`` if given).
 
     Returns path lengths [M] and contributions [M] of the visible elements, and the
     second moment ∫ g² dω_T of the per-TX-solid-angle value g = ρ/π cosθ_o / r_R²
@@ -357,6 +359,7 @@ def brute_force_single_bounce(triangles, albedo, tx, rx, tx_dir, rx_dir, half_an
     """
     xs, vals, lens, seconds = [], [], [], []
     cos_cut = math.cos(half_angle)
+    cos_cut_rx = cos_cut if rx_half_angle is None else math.cos(rx_half_angle)
     for tri, rho in zip(triangles, albedo):
         normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
         area = np.linalg.norm(normal) / 2
@@ -367,7 +370,7 @@ def brute_force_single_bounce(triangles, albedo, tx, rx, tx_dir, rx_dir, half_an
         ci, co = vt @ normal / rt, vr @ normal / rr
         keep = (ci * co > 0)                                          # two-sided Lambertian
         keep &= (-vt / rt[:, None]) @ tx_dir >= cos_cut               # TX cone
-        keep &= (-vr / rr[:, None]) @ rx_dir >= cos_cut               # RX cone
+        keep &= (-vr / rr[:, None]) @ rx_dir >= cos_cut_rx            # RX cone
         g = rho / math.pi * np.abs(co) / rr ** 2
         d_omega = np.abs(ci) / rt ** 2 * area / n_sub ** 2            # TX solid angle of dA
         xs.append(x[keep])
