@@ -158,3 +158,6 @@ def test_quiet_keeps_the_result_and_drops_progress(tmp_path, dataset_file, capsy
     assert recon_main(args + [str(tmp_path / "b.h5"), "--quiet"]) == 0
     second = capsys.readouterr()
     assert second.out.startswith("wrote ") and second.err == ""
+    assert recon_main(["-q"] + args + [str(tmp_path / "c.h5")]) == 0   # before the command
+    third = capsys.readouterr()
+    assert third.out.startswith("wrote ") and third.err == ""
