@@ -18,26 +18,31 @@ Where the tasks run (:class:`Engine`):
 * **in this process** (``scheduler="sequential"``): the tasks one after the other, no Dask
   (for debugging and as the benchmark's baseline).
 
-Failures: a task that raises a :class:`sonarsim.errors.SonarsimError` (a bad input such as a
-missing mesh) fails at once, since running it again gives the same error; any other exception
-(a bug, a full disk, memory) is retried ``retries`` times by Dask. A worker process that dies
-mid-task loses only that task, which Dask runs again on another worker (up to Dask's
-``distributed.scheduler.allowed-failures``, 3 by default). Failed tasks are reported with their
-error; the others run on. A task whose needed task failed is not run.
+Failures: only what may pass is tried again. A task that raises one of
+:data:`TRANSIENT_ERRORS` (a busy output lock, a lost connection, a timeout, memory) is
+retried ``retries`` times by Dask; anything else fails at once with its one-line error: a
+:class:`sonarsim.errors.SonarsimError` (bad input such as a missing mesh, a full disk) and
+an unexpected exception (a bug: running it again gives the same error; its traceback goes to
+the worker's log). A worker process that dies mid-task loses only that task, which Dask runs
+again on another worker (up to Dask's ``distributed.scheduler.allowed-failures``, 3 by
+default). Failed tasks are reported with their error; the others run on. A task whose needed
+task failed is not run.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import shutil
 import subprocess
 import time
-import traceback
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from .errors import InputError, SonarsimError
+
+log = logging.getLogger(__name__)
 
 SEQUENTIAL = "sequential"
 MEMORY_PER_WORKER = 2 * 2**30    # bytes a worker may need (a full 54 000-ping scan: ~1.5 GB)
@@ -100,13 +105,34 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
+class TransientError(RuntimeError):
+    """Raise it (or a subclass) from a task for a failure that may pass, e.g. an output
+    another process still holds: the engine runs the task again (``retries``)."""
+
+
+#: OSError numbers that may pass: busy, interrupted, a network file system's hiccup.
+TRANSIENT_ERRNOS = (errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.EIO, errno.ESTALE)
+#: What a task may raise and still succeed when run again.
+TRANSIENT_ERRORS = (TransientError, MemoryError, TimeoutError, ConnectionError)
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Whether running a task again may succeed after ``exc`` (see the module docstring)."""
+    if isinstance(exc, SonarsimError):
+        return False
+    if isinstance(exc, TRANSIENT_ERRORS):
+        return True
+    return isinstance(exc, OSError) and exc.errno in TRANSIENT_ERRNOS
+
+
 def run_task(fn: Callable, args: tuple, kwargs: Mapping, threads: int | None,
              variant: str | None, pass_needed: bool, *needed: _Returned) -> _Returned:
     """Worker-side wrapper of a task: variant and Dr.Jit threads, then ``fn``, timed.
 
-    A failed needed task makes this one fail without running. A :class:`SonarsimError`
-    becomes a returned failure (Dask does not retry it); anything else propagates (Dask
-    retries it).
+    A failed needed task makes this one fail without running. A transient error
+    (:func:`is_transient`) propagates, so that Dask retries the task; any other exception
+    becomes a returned one-line failure that is not retried (an unexpected one is marked
+    as such and its traceback logged).
     """
     for dep in needed:
         if not dep.ok:
@@ -120,8 +146,14 @@ def run_task(fn: Callable, args: tuple, kwargs: Mapping, threads: int | None,
         with dr_threads(threads):
             passed = tuple(d.value for d in needed) if pass_needed else ()
             value = fn(*args, *passed, **dict(kwargs))
-    except SonarsimError as exc:
-        return _Returned(False, error=_one_line(exc), wall_s=time.perf_counter() - t0)
+    except Exception as exc:
+        if is_transient(exc):
+            raise
+        message = _one_line(exc)
+        if not isinstance(exc, SonarsimError):
+            log.error("task failed unexpectedly", exc_info=True)
+            message = f"unexpected {message} (a bug; the worker log has the traceback)"
+        return _Returned(False, error=message, wall_s=time.perf_counter() - t0)
     return _Returned(True, value=value, wall_s=time.perf_counter() - t0)
 
 
@@ -212,11 +244,13 @@ def plan_local_cluster(n_tasks: int, *, cores: int | None = None, gpus: Sequence
     (benchmarks/bench_batch.py): one worker with 2 threads did 4 000 small jobs/h, two
     workers with 1 thread each 2 400. ``workers`` and ``threads`` override the defaults.
     """
+    from .threads import check_threads
     cores = max(1, cores or os.cpu_count() or 1)
     n_tasks = max(1, int(n_tasks))
-    for name, value in (("workers", workers), ("threads", threads)):
-        if value is not None and (int(value) != value or value < 1):
-            raise InputError(f"--{name} must be a positive integer, got {value}")
+    threads = check_threads(threads)
+    if workers is not None and (isinstance(workers, bool) or int(workers) != workers
+                                or workers < 1):
+        raise InputError(f"--workers must be a positive integer, got {workers}")
     use_gpus = tuple(gpus) if gpus and not (variant or "").startswith("llvm") else ()
     if use_gpus:
         n = workers or len(use_gpus)
@@ -227,7 +261,41 @@ def plan_local_cluster(n_tasks: int, *, cores: int | None = None, gpus: Sequence
         if memory:
             cap = min(cap, max(1, memory // MEMORY_PER_WORKER))
         workers = max(1, min(n_tasks, cap))
+    elif workers > max_workers(cores, memory):
+        cap = max_workers(cores, memory)
+        warn(f"--workers {workers} is more than this machine can run at once ({cores} "
+             f"core(s){', ' + str(memory // 2**30) + ' GiB' if memory else ''}); using {cap}")
+        workers = cap
     return ClusterPlan(int(workers), int(threads or max(1, cores // workers)))
+
+
+def max_workers(cores: int, memory: int | None = None) -> int:
+    """The most local worker processes that make sense: one per core, and one per
+    :data:`MEMORY_PER_WORKER` of memory."""
+    cap = max(1, cores)
+    if memory:
+        cap = min(cap, max(1, memory // MEMORY_PER_WORKER))
+    return cap
+
+
+def warn(message: str) -> None:
+    """A one-line warning of the engine (the CLI prints it as ``warning: ...``)."""
+    import warnings
+    warnings.warn(message, stacklevel=3)
+
+
+def check_scheduler(scheduler: str | None) -> str | None:
+    """A ``--scheduler`` value: None (local cluster), ``'sequential'``, or a Dask address
+    ``[tcp|tls|ucx|inproc|ws|wss]://host:port`` or ``host:port`` (one-line InputError)."""
+    import re
+    if scheduler is None or scheduler == SEQUENTIAL:
+        return scheduler
+    if not isinstance(scheduler, str) or not re.match(
+            r"^((tcp|tls|ucx|inproc|ws|wss)://)?[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}$"
+            r"|^(tcp|tls|ucx|inproc|ws|wss)://[A-Za-z0-9_.\-\[\]:/]+$", scheduler):
+        raise InputError(f"--scheduler {scheduler!r}: expected 'sequential' or a Dask "
+                         "scheduler address such as tcp://host:8786")
+    return scheduler
 
 
 # ----------------------------------------------------------------------------- engine
@@ -250,6 +318,9 @@ class Engine:
                  log=print):
         if int(retries) != retries or retries < 0:
             raise InputError(f"--retries must be an integer >= 0, got {retries}")
+        from .threads import check_threads
+        threads = check_threads(threads)
+        scheduler = check_scheduler(scheduler) if client is None else scheduler
         self.scheduler, self.workers, self.threads = scheduler, workers, threads
         self.retries, self.variant, self.dashboard, self.log = int(retries), variant, dashboard, log
         self.client, self._own, self._own_client, self.plan = client, [], False, None
@@ -286,7 +357,7 @@ class Engine:
         if self.scheduler:
             try:
                 self.client = Client(self.scheduler, timeout="20s")
-            except (OSError, TimeoutError) as exc:
+            except (OSError, TimeoutError, ValueError) as exc:
                 raise InputError(f"cannot connect to the Dask scheduler at {self.scheduler} "
                                  f"({_one_line(exc)})") from None
             self._own.append(self.client)
@@ -401,10 +472,8 @@ class Engine:
                     got = run_task(t.fn, t.args, t.kwargs, self.task_threads, self.variant,
                                    t.pass_needed, *needed)
                     break
-                except Exception as exc:       # a bug or a resource problem: retried
+                except Exception as exc:       # transient (is_transient): retried
                     got = _Returned(False, error=_one_line(exc))
-                    if attempt == self.retries:
-                        traceback.print_exc()
             results[t.key] = got
             finished(_outcome(t.key, got), t)
 
@@ -474,13 +543,3 @@ def gpu_worker_specs(plan: ClusterPlan, memory_limit) -> dict:
                 "nthreads": 1, "memory_limit": memory_limit,
                 "env": {"CUDA_VISIBLE_DEVICES": gpu, "SONARSIM_VARIANT": "cuda_ad_mono"}}}
             for i, gpu in enumerate(plan.gpus)}
-
-
-def run_calls(fn: Callable, calls: Iterable[tuple[str, Mapping]], *,
-              scheduler: str | None = None, progress: bool = True, **engine_options
-              ) -> dict[str, Outcome]:
-    """Run ``fn(**kwargs)`` for each ``(key, kwargs)`` of ``calls`` through an :class:`Engine`
-    (one job per call); returns {key: Outcome}. For scripts such as benchmarks/table2.py."""
-    tasks = [Task(key, fn, kwargs=dict(kwargs)) for key, kwargs in calls]
-    with Engine(scheduler, **engine_options) as engine:
-        return engine.run(tasks, progress=progress)

@@ -15,3 +15,8 @@ class InputError(SonarsimError, ValueError):
 
 class FormatError(SonarsimError):
     """A file is missing, unreadable, truncated or does not follow its schema."""
+
+
+class WriteError(SonarsimError):
+    """An output could not be written (disk full, read-only file system, permissions); the
+    message names the path. Nothing is left at the final path."""

@@ -27,6 +27,14 @@ except ImportError:  # pragma: no cover - Windows: no locking
     fcntl = None
 
 
+_HELD: dict[str, int] = {}     # output locks this process holds (absolute path -> depth)
+
+
+def held_here(path: str | os.PathLike) -> bool:
+    """Whether this process holds the output lock of ``path`` (:func:`output_lock`)."""
+    return _HELD.get(os.path.abspath(os.fspath(path)), 0) > 0
+
+
 class OutputBusyError(InputError):
     """Another process holds the lock of an output."""
 
@@ -66,6 +74,7 @@ def output_lock(path: str | os.PathLike) -> Iterator[Path]:
     process) holds it.
     """
     lock = lock_path(path)
+    key = os.path.abspath(os.fspath(path))
     if fcntl is None:  # pragma: no cover
         yield lock
         return
@@ -96,11 +105,16 @@ def output_lock(path: str | os.PathLike) -> Iterator[Path]:
         if same:
             break
         os.close(fd)
+    _HELD[key] = _HELD.get(key, 0) + 1
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        with contextlib.suppress(OSError):      # the pid is for people; a full disk is fine
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
         yield lock
     finally:
+        _HELD[key] -= 1
+        if not _HELD[key]:
+            del _HELD[key]
         with contextlib.suppress(FileNotFoundError):
             os.unlink(lock)
         os.close(fd)

@@ -247,13 +247,17 @@ def test_cluster_gives_the_one_by_one_bytes_and_a_rerun_does_nothing(three, clie
 def test_skip_needs_the_parameters_not_only_the_name(tmp_path):
     manifest = write_manifest(tmp_path / "m.toml", '[[job]]\nname = "fixed"\nscene = "sphere"\n'
                                                    'seed = 1\n')
-    run = lambda: batch.run_batch(batch.plan_batch(manifest, tmp_path / "out", log=print),
-                                  Engine("sequential", log=print), progress=False, log=print)
+    run = lambda force=False: batch.run_batch(
+        batch.plan_batch(manifest, tmp_path / "out", log=print, force=force),
+        Engine("sequential", log=print), progress=False, log=print)
     assert run().status == {"fixed": "done"}
     first = h5_contents(tmp_path / "out" / "fixed.h5")
     assert run().status == {"fixed": "skipped"}
     write_manifest(tmp_path / "m.toml", '[[job]]\nname = "fixed"\nscene = "sphere"\nseed = 2\n')
-    assert run().status == {"fixed": "done"}           # same name, other seed: simulated again
+    with pytest.raises(InputError, match="another batch job .*pass --force"):
+        run()                                          # same name, other seed: not replaced ...
+    assert h5_contents(tmp_path / "out" / "fixed.h5")["@seed"] == 1
+    assert run(force=True).status == {"fixed": "done"}  # ... unless forced
     second = h5_contents(tmp_path / "out" / "fixed.h5")
     assert first["@seed"] == 1 and second["@seed"] == 2
     assert not np.array_equal(first["waveforms"], second["waveforms"])
@@ -331,7 +335,7 @@ evaluate = {threshold = 0.3, samples = 500}
     assert vol.shape == (9, 9, 7) and vol.params["batch_step_id"]
     assert 0.0 <= float(row["backproject_iou"]) <= 1.0
     assert cli_main(args) == 0
-    assert "0 done, 1 skipped" in capsys.readouterr().err
+    assert "0 done, 1 skipped" in capsys.readouterr().out       # the result: stdout
     assert read_csv(tmp_path / "out" / "batch.csv")[row["job"]]["backproject_status"] == "skipped"
 
 
@@ -361,9 +365,9 @@ def test_cli_submits_to_an_existing_scheduler(client, tmp_path, capsys):
     args = ["batch", str(manifest), "--out", str(tmp_path / "out"), "--scheduler",
             client.scheduler.address, "--threads", "1", "--no-progress"]
     assert cli_main(args) == 0
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert f"Dask scheduler {client.scheduler.address}" in err and "dashboard" in err
-    assert "2 done, 0 skipped" in err
+    assert "2 done, 0 skipped" in out
     rows = read_csv(tmp_path / "out" / "batch.csv")
     assert sorted(rows) == ["sphere_seed-1", "sphere_seed-2"]
     assert all(r["status"] == "done" for r in rows.values())

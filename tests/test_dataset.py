@@ -513,6 +513,6 @@ def test_info_on_partial_file_reports_progress(tmp_path, capsys):
     ds = make_dataset(n=5, full=False)
     with DatasetStreamWriter(tmp_path / "D.h5", **_stream_kwargs(ds)) as w:
         w.write(1, ds.waveforms[1:3])
-    assert main(["info", str(tmp_path / "D.h5.partial")]) == 0
+    assert main(["info", str(tmp_path / "D.h5.partial")]) == 1     # readers refuse it
     out = capsys.readouterr().out
     assert "INCOMPLETE" in out and "2 pings written so far" in out

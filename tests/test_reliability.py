@@ -68,7 +68,7 @@ def _variant(ds: SonarDataset, **changes) -> SonarDataset:
     (["--max-memory", "1M", "--shape", "64", "64", "64"], "needs 14.0 MiB (64 x 64 x 64 voxels x 56 bytes) but --max-memory is 1.0 MiB"),
     (["--max-memory", "lots"], "--max-memory: expected a size"),
     (["--bounds", "50", "51", "50", "51", "50", "51"], "no voxel of the grid lies within"),
-    (["--threads", "0"], "--threads must be >= 1"),
+    (["--threads", "0"], "--threads must be an integer >= 1"),
     (["--threads", "100000"], "--threads must be at most 1024"),
 ])
 def test_backproject_refuses_before_allocating(ds_file, tmp_path, capsys, extra, message):
@@ -394,7 +394,7 @@ def test_finished_simulate_is_not_rendered_again(tmp_path, capsys):
     before = out.stat().st_mtime_ns, out.read_bytes()
     capsys.readouterr()
     assert sonarsim_main(SIM + ["--out", str(out)]) == 0          # same settings
-    assert "already complete" in capsys.readouterr().err
+    assert "already complete" in capsys.readouterr().out          # a result: stdout
     assert (out.stat().st_mtime_ns, out.read_bytes()) == before
     assert sonarsim_main(SIM + ["--out", str(out), "--seed", "7"]) == 2   # other settings
     assert "file exists (not this run's result); pass --force" in one_line_error(capsys)
@@ -491,6 +491,266 @@ def test_negative_seed_is_one_line_for_every_command(ds_file, tmp_path, capsys):
     assert recon_main(["evaluate", str(vol), "--gt", "sphere", "--no-images", "--no-sweep",
                        "--seed", "-1"]) == 2
     assert "--seed must be in [0, 2^32), got -1" in one_line_error(capsys)
+
+
+# ----------------------------------------------------- rails: issue 23 (data lost, disk full,
+# ----------------------------------------------------- manifests, readers); issue 22 item 1
+
+BATCH_FAST = ('[defaults]\nposes = "cylindrical:4:1"\npaths_per_pose = 200\nbounces = 1\n'
+              'bounce1 = "cone"\n')
+
+
+def _manifest(tmp_path, body: str, defaults: str = BATCH_FAST) -> Path:
+    path = tmp_path / "m.toml"
+    path.write_text(defaults + body)
+    return path
+
+
+def _batch(manifest, out, *extra):
+    return sonarsim_main(["batch", str(manifest), "--out", str(out), "--scheduler",
+                          "sequential", "--no-progress", *extra])
+
+
+def test_batch_outputs_that_would_overwrite_each_other_are_refused(tmp_path, capsys):
+    """Job 'a' with a 'bp' reconstruction writes a.bp.h5, which is also job 'a.bp''s dataset."""
+    m = _manifest(tmp_path, '[[job]]\nname = "a"\nscene = "sphere"\n[job.reconstruct]\n'
+                            'method = "backproject"\nlabel = "bp"\nshape = [5, 5, 5]\n'
+                            '[[job]]\nname = "a.bp"\nscene = "sphere"\nseed = 1\n')
+    assert _batch(m, tmp_path / "out", "--dry-run") == 2
+    line = one_line_error(capsys)
+    assert "a.bp.h5 would be both" in line and "'a.bp'" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_batch_never_replaces_a_dataset_it_did_not_make_for_that_job(point_ds, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    point_ds.write(out / "mine.h5")                  # the user's dataset
+    before = (out / "mine.h5").read_bytes()
+    m = _manifest(tmp_path, '[[job]]\nname = "mine"\nscene = "sphere"\n')
+    assert _batch(m, out) == 2
+    assert "mine.h5 exists and is a sonar dataset not made by this batch" in \
+        one_line_error(capsys)
+    assert (out / "mine.h5").read_bytes() == before and not (out / "batch.csv").exists()
+
+
+@pytest.mark.parametrize("setting, message", [
+    ('paths_per_pose = 1e30', "paths_per_pose must be an integer"),
+    ('snr_db = "abc"', "snr_db must be a number"),
+    ('beams = {tx_beam = "laser"}', "laser"),
+    ('threads = 100000', "threads must be at most 1024"),
+    ('fs = 1e12', "must be in (0, 1e+08] Hz, got 1e+12"),
+    ('[job.reconstruct]\nmethod = "gd"\niterations = -3', "iterations: must be >= 1, got -3"),
+    ('[job.reconstruct]\nmethod = "gd"\nlr = "fast"', "lr must be a number, got 'fast'"),
+    ('[job.reconstruct]\nmethod = "backproject"\nvoxel_size = 1e-6', "the volume needs"),
+    ('[job.reconstruct]\nmethod = "backproject"\nvoxel_size = 1e-300',
+     "gives more than 10^12 voxels"),
+])
+def test_batch_refuses_bad_settings_before_anything_runs(tmp_path, capsys, setting, message):
+    m = _manifest(tmp_path, f'[[job]]\nscene = "sphere"\n{setting}\n')
+    start = time.perf_counter()
+    assert _batch(m, tmp_path / "out") == 2
+    assert time.perf_counter() - start < 30
+    line = one_line_error(capsys)
+    assert message in line and line.startswith("sonarsim: error: job[0]"), line
+    assert not (tmp_path / "out").exists()
+
+
+def test_batch_absurd_sample_rate_and_grid_say_what_the_cli_says(ds_file, tmp_path, capsys):
+    """The same rule, so the same sentence (the CLI names --fs, the manifest fs)."""
+    assert sonarsim_main(["simulate", "sphere", "--poses", "cylindrical:4:1", "--fs", "1e12",
+                          "--out", str(tmp_path / "s.h5")]) == 2
+    cli = one_line_error(capsys).split("--fs ", 1)[1]
+    assert _batch(_manifest(tmp_path, '[[job]]\nscene = "sphere"\nfs = 1e12\n'),
+                  tmp_path / "out") == 2
+    assert one_line_error(capsys).endswith("fs " + cli)
+    assert recon_main(["backproject", str(ds_file), "--out", str(tmp_path / "v.h5"),
+                       "--bounds", *BOUNDS, "--voxel-size", "1e-300"]) == 2
+    cli = one_line_error(capsys).split("error: ", 1)[1]
+    bounds = "[" + ", ".join(BOUNDS) + "]"
+    assert _batch(_manifest(tmp_path, f'[[job]]\nscene = "sphere"\n[job.reconstruct]\n'
+                                      f'method = "backproject"\nbounds = {bounds}\n'
+                                      f'voxel_size = 1e-300\n'), tmp_path / "out") == 2
+    assert one_line_error(capsys).endswith(": " + cli)
+
+
+def test_batch_job_count_is_capped_and_planning_is_quick(tmp_path, capsys):
+    seeds = ", ".join(str(i) for i in range(200))
+    m = _manifest(tmp_path, f'[[sweep]]\nscene = "sphere"\nseed = [{seeds}]\n'
+                            f'snr_db = [{", ".join(str(i) for i in range(60))}]\n')
+    start = time.perf_counter()
+    assert _batch(m, tmp_path / "out", "--dry-run") == 2
+    assert time.perf_counter() - start < 10
+    assert "12000 jobs, more than the 10000 allowed without --max-jobs" in one_line_error(capsys)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--scheduler", "garbage"], "--scheduler 'garbage': expected 'sequential' or a Dask"),
+    (["--threads", "100000"], "--threads must be at most 1024"),
+    (["--max-jobs", "0"], "--max-jobs must be >= 1"),
+])
+def test_batch_command_line_refusals_are_one_line(tmp_path, capsys, argv, message):
+    m = _manifest(tmp_path, '[[job]]\nscene = "sphere"\n')
+    assert sonarsim_main(["batch", str(m), "--out", str(tmp_path / "out"), *argv]) == 2
+    assert message in one_line_error(capsys)
+
+
+def test_batch_workers_are_capped_to_the_machine():
+    from sonarsim.batch_engine import plan_local_cluster
+    with pytest.warns(UserWarning, match="--workers 50 is more than this machine"):
+        plan = plan_local_cluster(100, cores=2, workers=50, memory=64 * 2**30)
+    assert plan.n_workers == 2 and plan.threads == 1
+
+
+def test_batch_corrupt_table_does_not_block_a_rerun(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "batch.csv").write_bytes(b"job,status\n\xff\xfe\x00garbage\x9c\n")
+    m = _manifest(tmp_path, '[[job]]\nname = "s"\nscene = "sphere"\n')
+    assert _batch(m, out) == 0
+    assert "s,done," in (out / "batch.csv").read_text()
+
+
+def _unexpected(counter: list):
+    counter.append(1)
+    raise TypeError("unsupported operand type(s) for +: 'int' and 'str'")
+
+
+def test_batch_unexpected_errors_are_not_retried_as_if_transient():
+    from sonarsim.batch_engine import Engine, Task
+    calls: list = []
+    with Engine("sequential", retries=2, log=lambda s: None) as engine:
+        (outcome,) = engine.run([Task("t", _unexpected, (calls,))], progress=False).values()
+    assert len(calls) == 1
+    assert not outcome.ok and outcome.error.startswith("unexpected TypeError: unsupported")
+
+
+class _LostEngine:
+    """An engine whose cluster is lost mid-run (after it started)."""
+
+    def __init__(self):
+        self.started = False
+
+    def start(self, n):
+        self.started = True
+
+    def run(self, tasks, progress, on_job):
+        raise ConnectionError("the scheduler went away")
+
+
+def test_batch_unfinished_jobs_are_not_left_pending(tmp_path):
+    import csv
+    from sonarsim import batch
+    m = _manifest(tmp_path, '[[job]]\nname = "s"\nscene = "sphere"\n')
+    plan = batch.plan_batch(m, tmp_path / "out", log=lambda s: None)
+    with pytest.raises(ConnectionError):
+        batch.run_batch(plan, _LostEngine(), progress=False, log=lambda s: None)
+    with open(tmp_path / "out" / "batch.csv") as fh:
+        (row,) = csv.DictReader(fh)
+    assert row["status"] == "not run" and "stopped" in row["error"]
+
+
+def test_concurrent_batch_finds_the_lock_before_starting_a_cluster(tmp_path):
+    from sonarsim import batch
+    m = _manifest(tmp_path, '[[job]]\nname = "s"\nscene = "sphere"\n')
+    plan = batch.plan_batch(m, tmp_path / "out", log=lambda s: None)
+    engine = _LostEngine()
+    (tmp_path / "out").mkdir()
+    with outputs.output_lock(tmp_path / "out" / "batch.csv"):
+        with pytest.raises(outputs.OutputBusyError):
+            batch.run_batch(plan, engine, progress=False, log=lambda s: None)
+    assert not engine.started
+
+
+def test_info_exits_1_for_a_killed_runs_partial_file(point_ds, tmp_path, capsys):
+    out = tmp_path / "D.h5"
+    w = _writer(out, point_ds)
+    w.write(0, point_ds.waveforms[:5])
+    w.close()                                        # as a killed run leaves it
+    renamed = tmp_path / "renamed.h5"
+    renamed.write_bytes(Path(str(out) + ".partial").read_bytes())
+    for path in (Path(str(out) + ".partial"), renamed):
+        assert sonarsim_main(["info", str(path)]) == 1
+        text = capsys.readouterr().out
+        assert "INCOMPLETE" in text and "incomplete file" in text
+
+
+def test_zero_ping_datasets_are_refused_by_the_writer_and_the_readers(point_ds, ds_file,
+                                                                       tmp_path, capsys):
+    with pytest.raises(InputError, match="at least one ping"):
+        _variant(point_ds, waveforms=point_ds.waveforms[:0], tx=point_ds.tx[:0],
+                 rx=point_ds.rx[:0], boresight=point_ds.boresight[:0])
+    empty = tmp_path / "empty.h5"
+    with h5py.File(ds_file, "r") as src, h5py.File(empty, "w") as dst:
+        for key, value in src.attrs.items():
+            dst.attrs[key] = value
+        def copy(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                data = obj[()]
+                dst.create_dataset(name, data=data[:0] if name.startswith(("pings", "wave"))
+                                   else data)
+        src.visititems(copy)
+    with pytest.raises(FormatError, match="at least one ping"):
+        SonarDataset.read(empty)
+    assert sonarsim_main(["info", str(empty)]) == 1
+    assert "at least one ping" in capsys.readouterr().out
+    assert recon_main(["backproject", str(empty), "--out", str(tmp_path / "v.h5")]) == 2
+    assert "at least one ping" in one_line_error(capsys)
+
+
+@pytest.mark.parametrize("command", ["backproject", "pfa", "gd", "nbp"])
+def test_a_volume_given_as_dataset_says_what_it_is(ds_file, tmp_path, capsys, command):
+    vol = tmp_path / "v.h5"
+    assert _bp(ds_file, vol) == 0
+    capsys.readouterr()
+    assert recon_main([command, str(vol), "--out", str(tmp_path / "w.h5"), "--shape", "5", "5",
+                       "5", "--no-progress"]) == 2
+    line = one_line_error(capsys)
+    assert "this is a volume file, not a sonar dataset" in line and "corrupt" not in line
+
+
+def test_a_full_disk_is_one_line_before_writing(ds_file, tmp_path, capsys, monkeypatch):
+    from sonarsim import atomic
+    monkeypatch.setattr(atomic, "free_bytes", lambda path: 1000)
+    out = tmp_path / "v.h5"
+    assert _bp(ds_file, out) == 2
+    line = one_line_error(capsys)
+    assert f"cannot write {out}: needs about" in line and "are free" in line
+    assert list(tmp_path.iterdir()) == [ds_file]
+
+
+def test_a_write_failing_midway_is_one_line_and_leaves_nothing(tmp_path):
+    """A file-size limit makes a write fail halfway (EFBIG; a full disk fails the same way
+    with ENOSPC, reproduced on a 20 MB tmpfs): one WriteError line naming the final path, no
+    file there, no temporary file left. (HDF5 2.0 itself crashes after a failed write, which
+    is why HDF5 writers check the free space first: test above.)"""
+    out = tmp_path / "poses.npy"
+    code = ("import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (30000, 30000)); "
+            "import numpy as np; from sonarsim.atomic import atomic_path; "
+            "from sonarsim.errors import WriteError\n"
+            "try:\n"
+            "    with atomic_path(sys.argv[1]) as tmp:\n"
+            "        np.save(tmp, np.zeros(100000))\n"
+            "except WriteError as exc:\n"
+            "    print(exc); sys.exit(2)")
+    r = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True,
+                       timeout=300)
+    lines = r.stdout.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and not r.stderr, r
+    assert lines[0].startswith(f"cannot write {out}: ")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_killed_writers_temporary_file_is_removed_by_the_next_run(ds_file, tmp_path):
+    out = tmp_path / "v.h5"
+    leftover = tmp_path / ".v.h5.k1ll3d_x.tmp"        # what kill -9 mid-write leaves
+    leftover.write_bytes(b"\0" * 4096)
+    other = tmp_path / ".w.h5.k1ll3d_x.tmp"           # another output's: not ours to judge
+    other.write_bytes(b"\0")
+    assert _bp(ds_file, out) == 0
+    assert not leftover.exists() and other.exists()
+    assert Volume.read(out).shape == (5, 5, 5)
 
 
 # ------------------------------------------- firstday-b: broken pipes and Ctrl-C (issue 23.6)

@@ -62,8 +62,8 @@ def load_dataset(args):
     """The dataset of ``args.dataset`` with the ``--pings`` selection, after checking that its
     waveforms fit in memory and that its pulse is not all zero."""
     from sonarsim import limits
-    from sonarsim.dataset import SonarDataset, inspect
-    with inspect(args.dataset) as (_, fields):
+    from sonarsim.dataset import KIND_DATASET, SonarDataset, inspect
+    with inspect(args.dataset, expected=KIND_DATASET) as (_, fields):
         n, t = fields["waveforms"].shape
         itemsize = fields["waveforms"].dtype.itemsize
     n_sel = n if args.pings is None else len(parse_slice(args.pings, n))

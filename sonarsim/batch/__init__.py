@@ -49,15 +49,19 @@ from .manifest import (BATCH_KEYS, DEFAULT_PULSE, EXECUTION_ONLY, NOT_SETTINGS, 
                        canonical_params, default_fs, expand_manifest, load_manifest,
                        settings_fields)
 from .naming import NAME_RE, default_names
-from .plan import (RECON_ENTRY_POINTS, Job, Plan, ReconStep, build_simulation,
-                   load_job_scene, plan_batch, recon_plugin, recon_step)
-from .records import SUMMARY_METRICS, dataset_record, fidelity, step_record, summary_metrics
-from .run import BatchResult, run_batch
+from .plan import (MAX_JOBS, RECON_ENTRY_POINTS, Job, Plan, ReconStep, build_simulation,
+                   check_collisions, check_existing, job_files, load_job_scene, plan_batch,
+                   preflight, recon_plugin, recon_step)
+from .records import (SUMMARY_METRICS, dataset_record, existing_owner, fidelity, step_record,
+                      summary_metrics)
+from .run import NOT_RUN, BatchResult, JobState, job_state, run_batch
 from .table import CSV_NAME, BatchTable, read_previous_csv
 from .tasks import run_reconstruction, run_simulation
 
 __all__ = ["BATCH_KEYS", "BatchResult", "BatchTable", "CSV_NAME", "DEFAULT_PULSE",
-           "EXECUTION_ONLY", "Job", "NAME_RE", "NOT_SETTINGS", "OutputBusy", "Plan",
+           "EXECUTION_ONLY", "Job", "JobState", "MAX_JOBS", "NAME_RE", "NOT_RUN",
+           "NOT_SETTINGS", "OutputBusy", "Plan", "check_collisions", "check_existing",
+           "existing_owner", "job_files", "job_state", "preflight",
            "RECON_ENTRY_POINTS", "ReconStep", "SUMMARY_METRICS", "TOP_KEYS",
            "build_simulation", "canonical_params", "dataset_record", "default_fs",
            "default_names", "expand_manifest", "fidelity", "identity_params", "job_id_of",

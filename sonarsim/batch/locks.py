@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import contextlib
 
+from ..batch_engine import TransientError
 
-class OutputBusy(RuntimeError):
+
+class OutputBusy(TransientError):
     """Another process writes this output now (retried by the engine, unlike input errors)."""
 
 

@@ -3,13 +3,19 @@ and each job's canonical parameters (docs/batch.md)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import glob as globlib
 import itertools
+import math
 import tomllib
+import types
+import typing
 from pathlib import Path
 from typing import Any
 
+from .. import limits
 from ..errors import InputError
+from ..threads import check_threads
 
 TOP_KEYS = ("defaults", "job", "sweep")
 BATCH_KEYS = ("name", "scene", "mesh", "fit", "ground", "poses", "pulse", "fs",
@@ -30,6 +36,70 @@ def settings_fields() -> dict[str, dataclasses.Field]:
     """The :class:`SimulationSettings` fields a job may set (all but the batch's own)."""
     from ..simulate import SimulationSettings
     return {f.name: f for f in dataclasses.fields(SimulationSettings) if f.name not in NOT_SETTINGS}
+
+
+@functools.lru_cache(maxsize=1)
+def _setting_types() -> dict:
+    from ..simulate import SimulationSettings
+    return typing.get_type_hints(SimulationSettings)
+
+
+def _type_text(hint) -> str:
+    """How a setting's type reads in a message."""
+    args = typing.get_args(hint)
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        parts = [_type_text(a) for a in args if a is not type(None)]
+        return " or ".join(parts) + (" (or left out)" if type(None) in args else "")
+    if origin is tuple or hint is tuple:
+        plural = {int: "integers", float: "numbers", str: "strings", bool: "true/false values"}
+        return f"a list of {plural.get(args[0], _type_text(args[0]))}" if args else "a list"
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string",
+             dict: "a table"}
+    if hint in names:
+        return names[hint]
+    if origin is not None and origin.__name__ in ("Mapping", "dict"):
+        return "a table"
+    return getattr(hint, "__name__", str(hint))
+
+
+def _fits(value, hint) -> bool:
+    """Whether a TOML value fits a settings annotation (ints stand for floats, never the
+    reverse; bools are not numbers; unknown annotations accept anything)."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if hint is type(None):
+        return value is None
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if origin is tuple or hint is tuple:
+        if not isinstance(value, (list, tuple)):
+            return False
+        item = args[0] if args else Any
+        return all(_fits(v, item) for v in value)
+    if hint is dict or (origin is not None and getattr(origin, "__name__", "") in
+                        ("Mapping", "dict", "MutableMapping")):
+        return isinstance(value, dict)
+    return True
+
+
+def check_setting(key: str, value, where: str) -> None:
+    """A manifest value of a :class:`SimulationSettings` field checked against the field's
+    type (one-line InputError naming the key): ``snr_db = "abc"``, ``paths_per_pose = 1e30``
+    (a float where the CLI takes an integer). Ranges are the settings' own
+    (``SimulationSettings.validate``)."""
+    hint = _setting_types().get(key)
+    if hint is None or _fits(value, hint):
+        return
+    raise InputError(f"{where}: {key} must be {_type_text(hint)}, got {value!r}")
 
 
 def load_manifest(path: str | Path) -> dict:
@@ -78,12 +148,14 @@ def _expand_mesh(value, where: str, base: Path) -> list[str]:
     return out
 
 
-def expand_manifest(doc: dict, base: Path) -> list[tuple[str, dict]]:
+def expand_manifest(doc: dict, base: Path, max_jobs: int | None = None
+                    ) -> list[tuple[str, dict]]:
     """(where, raw job parameters) for every job of a parsed manifest, in manifest order.
 
     ``[defaults]`` fill every job; in a ``[[sweep]]`` every list value is an axis (a
     list-valued setting is given as a list of lists) and the jobs are the product of the
-    axes; ``mesh`` globs are axes wherever they appear.
+    axes; ``mesh`` globs are axes wherever they appear. More than ``max_jobs`` jobs (None:
+    no cap) is refused before any job is built.
     """
     unknown = sorted(set(doc) - set(TOP_KEYS))
     if unknown:
@@ -96,7 +168,8 @@ def expand_manifest(doc: dict, base: Path) -> list[tuple[str, dict]]:
                 for i, t in enumerate(tables(doc.get("sweep", []), "sweep"))]
     if not entries:
         raise InputError("manifest: no jobs (add [[job]] tables or a [[sweep]])")
-    out = []
+    expanded = []
+    total = 0
     for where, table, is_sweep in entries:
         merged = {**defaults, **table}
         axes: dict[str, list] = {}
@@ -107,6 +180,13 @@ def expand_manifest(doc: dict, base: Path) -> list[tuple[str, dict]]:
                 if not value:
                     raise InputError(f"{where}: sweep axis '{key}' is empty")
                 axes[key] = value
+        expanded.append((where, merged, axes))
+        total += math.prod(len(v) for v in axes.values())
+    if max_jobs is not None and total > max_jobs:
+        raise InputError(f"manifest: {total} jobs, more than the {max_jobs} allowed without "
+                         f"--max-jobs (check the sweep axes; --max-jobs N raises the cap)")
+    out = []
+    for where, merged, axes in expanded:
         fixed = {k: v for k, v in merged.items() if k not in axes}
         for combo in itertools.product(*axes.values()):
             chosen = dict(zip(axes, combo))
@@ -171,16 +251,24 @@ def canonical_params(raw: dict, where: str, base: Path) -> dict:
         raise InputError(f"{where}: pulse must be a string")
     p["pulse"] = _resolve(pulse, base) if pulse.lower().endswith(".npy") else pulse
     fs = raw.get("fs", default_fs())
-    if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not fs > 0:
-        raise InputError(f"{where}: fs must be a positive number (Hz)")
-    p["fs"] = float(fs)
+    if isinstance(fs, bool) or not isinstance(fs, (int, float)):
+        raise InputError(f"{where}: fs must be a number (Hz), got {fs!r}")
+    try:
+        p["fs"] = limits.check_fs(float(fs), "fs")     # before any pulse is generated
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
     if "pulse_samples" in raw:
         n = raw["pulse_samples"]
         if isinstance(n, bool) or not isinstance(n, int) or n < 2:
             raise InputError(f"{where}: pulse_samples must be an integer >= 2")
         p["pulse_samples"] = n
     for key in sorted(set(raw) & set(fields_)):
+        check_setting(key, raw[key], where)
         p[key] = raw[key]
+    if "threads" in p:
+        check_threads(p["threads"], f"{where}: threads")
+    if p.get("chunk_size") is not None and p["chunk_size"] < 1:
+        raise InputError(f"{where}: chunk_size must be >= 1, got {p['chunk_size']}")
     if "bounce_set" in p and "bounces" not in p and isinstance(p["bounce_set"], list) \
             and p["bounce_set"] and all(isinstance(b, int) for b in p["bounce_set"]):
         p["bounces"] = max(p["bounce_set"])            # as `sonarsim simulate`

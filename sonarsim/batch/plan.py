@@ -111,12 +111,13 @@ def load_job_scene(params: dict):
     return dataclasses.replace(spec, source=f"mesh {mesh} (fit={str(params['fit']).lower()})")
 
 
-def build_simulation(params: dict, *, scene=None, poses=None):
+def build_simulation(params: dict, *, scene=None, poses=None, digests: dict | None = None):
     """(scene, poses, settings, digests) of a job's canonical ``params``; ``scene``/``poses``
-    may be given when already loaded. The settings carry no batch metadata yet."""
+    may be given when already loaded, ``digests`` of scene/poses/pulse when already known.
+    The settings carry no batch metadata yet."""
     from ..geometry import trajectory
     from ..signals import pulse_from_spec
-    from ..simulate import SimulationSettings, simulation_window
+    from ..simulate import SimulationSettings
     fields_ = settings_fields()
     spec = scene if scene is not None else load_job_scene(params)
     if poses is None:
@@ -130,10 +131,56 @@ def build_simulation(params: dict, *, scene=None, poses=None):
         if isinstance(exc, SonarsimError):
             raise
         raise InputError(f"invalid simulation setting ({exc})") from None
-    simulation_window(poses, spec, pulse, settings.sound_speed, settings.oversample)
-    digests = {"scene": scene_digest(spec), "poses": poses_digest(poses),
-               "pulse": pulse_digest(pulse), "settings": settings_digest(settings)}
+    known = digests or {}
+    digests = {"scene": known.get("scene") or scene_digest(spec),
+               "poses": known.get("poses") or poses_digest(poses),
+               "pulse": known.get("pulse") or pulse_digest(pulse),
+               "settings": settings_digest(settings)}
     return spec, poses, settings, digests
+
+
+def preflight(spec, poses, settings) -> None:
+    """The simulation's checks before any work, as ``sonarsim simulate`` makes them: sample
+    rate, pulse, recorded window, memory estimate (``sonarsim.simulate.preflight``)."""
+    from .. import simulate
+    own = getattr(simulate, "preflight", None)
+    if callable(own):
+        own(spec, poses, settings)
+        return
+    # Until sonarsim.simulate.preflight exists (requested from its owner): the CLI's checks.
+    from .. import limits
+    from ..simulate import CONVOLVE_BLOCK, simulation_window
+    pulse = settings.pulse
+    limits.check_fs(pulse.fs, "fs")
+    limits.check_pulse_length(len(pulse.samples), pulse.fs, f"pulse {pulse.spec}")
+    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed,
+                                     settings.oversample)
+    need, detail = limits.simulate_memory(len(poses), settings.bounces, window.n_bins,
+                                          crop.num_samples, len(pulse.samples),
+                                          settings.oversample, settings.chunk_size,
+                                          CONVOLVE_BLOCK)
+    limits.check_memory(need, "the simulation", detail,
+                        "lower fs or oversample, shorten the pulse or simulate fewer poses")
+
+
+def check_integrator(settings, cache: dict) -> None:
+    """Build the integrator a job renders with once per distinct beams/estimator setting
+    (its plugin validates them: an unknown beam pattern is refused at plan time)."""
+    from ..identity import digest
+    from ..render import make_integrator
+    key = digest(settings.bounces, settings.beams, settings.bounce1, settings.amplitude,
+                 settings.surface_spacing, settings.speckle_seed)
+    if key not in cache:
+        try:
+            make_integrator(settings.bounces, settings.beams, bounce1=settings.bounce1,
+                            amplitude=settings.amplitude,
+                            surface_spacing=settings.surface_spacing,
+                            speckle_seed=settings.speckle_seed)
+        except InputError as exc:           # Mitsuba quotes the plugin's whole traceback
+            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+            raise InputError(f"integrator settings: {lines[-1]}" if len(lines) > 1
+                             else str(exc)) from None
+        cache[key] = True
 
 
 def recon_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
@@ -142,11 +189,52 @@ def recon_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
     return recon_plugin(where).plan_step(raw, where, job_name, job_id, out, box)
 
 
-def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], None] = print
-               ) -> Plan:
+MAX_JOBS = 10_000     # jobs a manifest may expand to without --max-jobs (a typo guard)
+
+
+class _Loader:
+    """Scenes, poses and their digests, each loaded once however many jobs share them."""
+
+    def __init__(self):
+        self.scenes: dict[str, Any] = {}
+        self.poses: dict[tuple, tuple] = {}
+        self.pulses: dict[tuple, str] = {}
+        self.integrators: dict = {}
+        self.notes: list[str] = []
+
+    def job(self, params: dict):
+        from ..geometry import trajectory
+        ref = json.dumps({k: params[k] for k in ("scene", "mesh", "fit", "ground")
+                          if k in params}, sort_keys=True)
+        if ref not in self.scenes:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                spec = load_job_scene(params)
+            self.notes += [f"{short(params.get('scene') or params['mesh'])}: "
+                           f"{str(w.message)}" for w in caught]
+            self.scenes[ref] = (spec, scene_digest(spec))
+        spec, s_digest = self.scenes[ref]
+        key = (params["poses"], spec.box.lo.tobytes(), spec.box.hi.tobytes())
+        if key not in self.poses:
+            poses = trajectory(params["poses"], box=spec.box)
+            self.poses[key] = (poses, poses_digest(poses))
+        poses, p_digest = self.poses[key]
+        spec, poses, settings, digests = build_simulation(
+            params, scene=spec, poses=poses, digests={"scene": s_digest, "poses": p_digest})
+        preflight(spec, poses, settings)
+        check_integrator(settings, self.integrators)
+        return spec, digests
+
+
+def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], None] = print,
+               max_jobs: int | None = MAX_JOBS, force: bool = False) -> Plan:
     """Expand and validate every job of ``manifest`` for output directory ``out``.
 
-    Nothing is written. Raises :class:`InputError` naming the first bad job.
+    Nothing is written and nothing runs. Raises :class:`InputError` naming the first bad
+    job: a setting the simulator or the reconstruction refuses, more than ``max_jobs``
+    jobs (None: no cap), two jobs writing one file (:func:`check_collisions`), or an
+    existing file in ``out`` that is not the result of the job that would write it, unless
+    ``force`` (:func:`check_existing`). Linear in the number of jobs.
     """
     manifest = Path(manifest)
     doc = load_manifest(manifest)
@@ -154,28 +242,13 @@ def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], No
     out = Path(out).resolve()
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: --out must be a directory")
-    raw_jobs = expand_manifest(doc, base)
-    scenes: dict[str, tuple] = {}
-    poses_cache: dict[tuple, Any] = {}
-    notes: list[str] = []
+    raw_jobs = expand_manifest(doc, base, max_jobs=max_jobs)
+    loader = _Loader()
     drafts = []
     for where, raw in raw_jobs:
         params = canonical_params(raw, where, base)
-        ref = json.dumps({k: params[k] for k in ("scene", "mesh", "fit", "ground") if k in params},
-                         sort_keys=True)
         try:
-            if ref not in scenes:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always")
-                    scenes[ref] = (load_job_scene(params),)
-                notes += [f"{short(params.get('scene') or params['mesh'])}: "
-                          f"{str(w.message)}" for w in caught]
-            spec = scenes[ref][0]
-            key = (params["poses"], spec.box.lo.tobytes(), spec.box.hi.tobytes())
-            if key not in poses_cache:
-                from ..geometry import trajectory
-                poses_cache[key] = trajectory(params["poses"], box=spec.box)
-            _, _, _, digests = build_simulation(params, scene=spec, poses=poses_cache[key])
+            spec, digests = loader.job(params)
         except SonarsimError as exc:
             raise InputError(f"{where}: {exc}") from None
         drafts.append((where, params, digests, spec.box))
@@ -205,4 +278,62 @@ def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], No
             raise InputError(f"{where}: two reconstructions share a label; set 'label'")
         jobs.append(Job(name=name, where=where, params=params, job_id=job_id,
                         output=str(out / f"{name}.h5"), digests=digests, recon=steps))
-    return Plan(manifest=manifest, out=out, jobs=jobs, warnings=sorted(set(notes)))
+    plan = Plan(manifest=manifest, out=out, jobs=jobs, warnings=sorted(set(loader.notes)))
+    check_collisions(plan)
+    check_existing(plan, force=force)
+    return plan
+
+
+def job_files(job: Job) -> list[tuple[str, str]]:
+    """(path, what) of every file ``job`` may write: its dataset and the dataset's partial,
+    scratch and lock files; each step's volume, metrics and lock files."""
+    from ..dataset import PARTIAL_SUFFIX
+    from ..outputs import lock_path
+    from ..simulate import scratch_path
+    out = Path(job.output)
+    files = [(str(out), "dataset"), (str(out) + PARTIAL_SUFFIX, "partial dataset"),
+             (str(scratch_path(out)), "noiseless scratch file"),
+             (str(scratch_path(out)) + PARTIAL_SUFFIX, "partial scratch file"),
+             (str(lock_path(out)), "lock file")]
+    for step in job.recon:
+        files += [(step.output, f"'{step.label}' volume"),
+                  (str(lock_path(step.output)), f"'{step.label}' lock file")]
+        if step.evaluate is not None:
+            files.append((step.eval_output, f"'{step.label}' metrics"))
+    return files
+
+
+def check_collisions(plan: Plan) -> None:
+    """InputError if two jobs (or a job and ``batch.csv``) would write the same file, e.g.
+    job ``a``'s ``bp`` volume ``a.bp.h5`` and job ``a.bp``'s dataset."""
+    from ..outputs import lock_path
+    from .table import CSV_NAME
+    csv = plan.out / CSV_NAME
+    owner: dict[str, str] = {str(csv): "the batch table", str(lock_path(csv)): "the batch lock"}
+    for job in plan.jobs:
+        for path, what in job_files(job):
+            mine = f"the {what} of {job.where} '{job.name}'"
+            other = owner.get(path)
+            if other is not None:
+                raise InputError(f"{job.where}: {Path(path).name} would be both {mine} and "
+                                 f"{other}; rename one of them ('name' or 'label')")
+            owner[path] = mine
+
+
+def check_existing(plan: Plan, force: bool = False) -> None:
+    """InputError if a final output of a job exists in ``plan.out`` and is not that job's
+    own result (a dataset or volume without the job's id, or anything else), unless
+    ``force``: a batch never replaces a file it did not make for this very job."""
+    if force or not plan.out.is_dir():
+        return
+    from .records import existing_owner
+    for job in plan.jobs:
+        for path, kind, ident in [(job.output, "dataset", job.job_id)] + \
+                [(s.output, "volume", s.step_id) for s in job.recon] + \
+                [(s.eval_output, "metrics", s.step_id) for s in job.recon
+                 if s.evaluate is not None]:
+            problem = existing_owner(path, kind, ident)
+            if problem:
+                raise InputError(f"{job.where}: {path} exists and is {problem}, not the result "
+                                 f"of job '{job.name}'; pass --force to replace it, or choose "
+                                 "another --out")

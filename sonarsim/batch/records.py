@@ -68,3 +68,38 @@ def step_record(step) -> dict | None:
     if not isinstance(saved, dict) or saved.get("batch_step_id") != step.step_id:
         return None
     return summary_metrics(saved.get("metrics", {}))
+
+
+def existing_owner(path: str | Path, kind: str, ident: str) -> str | None:
+    """None if ``path`` does not exist or is the output of the job or step ``ident``
+    (``kind``: 'dataset', 'volume' or 'metrics'); else what it is, for a message."""
+    from ..dataset import KIND_NAMES, inspect
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        return None
+    if path.is_dir():
+        return "a directory"
+    if kind == "metrics":
+        try:
+            saved = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return "not a batch metrics file"
+        if isinstance(saved, dict) and saved.get("batch_step_id") == ident:
+            return None
+        return "the metrics of another reconstruction"
+    key = {"dataset": ("meta", "batch_job_id"), "volume": ("params", "batch_step_id")}[kind]
+    try:
+        with inspect(path, allow_partial=True) as (found, fields_):
+            mine = (fields_.get(key[0]) or {}).get(key[1])
+            complete = fields_.get("complete", True)
+            name = KIND_NAMES.get(found, found)
+    except (SonarsimError, OSError):
+        return "not a readable sonarsim file"
+    if mine == ident and complete:
+        return None
+    if not complete:
+        return f"an incomplete {name}"
+    if mine is not None:
+        return f"a {name} of another batch {'job' if kind == 'dataset' else 'step'} " \
+               "(other settings)"
+    return f"a {name} not made by this batch"

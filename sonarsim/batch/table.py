@@ -46,8 +46,9 @@ def read_previous_csv(path: Path) -> dict[str, dict]:
 class BatchTable:
     """The rows of DIR/batch.csv, rewritten atomically as jobs finish."""
 
-    def __init__(self, plan):
-        self.plan, self.path = plan, plan.out / CSV_NAME
+    def __init__(self, plan, log=print):
+        self.plan, self.path, self.log = plan, plan.out / CSV_NAME, log
+        self.failed_write = ""
         self.previous = read_previous_csv(self.path)
         self.rows: dict[str, dict] = {}
         self.fidelity_keys: list[str] = []
@@ -112,13 +113,25 @@ class BatchTable:
             w.writerow([_cell(row.get(k)) for k in columns])
         return buf.getvalue()
 
-    def write(self, force: bool = False) -> None:
-        """Rewrite the file (at most once a second unless ``force``)."""
+    def write(self, force: bool = False, final: bool = False) -> None:
+        """Rewrite the file (at most once a second unless ``force``). A write that fails (a
+        full disk) is reported once and tried again later; only the ``final`` one raises
+        (:class:`~sonarsim.errors.WriteError`, one line), so the jobs run on meanwhile."""
         if not force and time.monotonic() - self.last_write < 1.0:
             return
         from ..atomic import atomic_path
+        from ..errors import WriteError
         text = self.text()
-        self.plan.out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(self.path) as tmp:
-            tmp.write_text(text)
         self.last_write = time.monotonic()
+        try:
+            with atomic_path(self.path, size=len(text.encode())) as tmp:
+                tmp.write_text(text)
+        except WriteError as exc:
+            if final:
+                raise
+            if str(exc) != self.failed_write:
+                self.log(f"batch: warning: {exc}; the jobs go on, the table is written again "
+                         "later")
+                self.failed_write = str(exc)
+            return
+        self.failed_write = ""

@@ -16,9 +16,11 @@ The full schema is in ``docs/formats.md``.
 Modules: ``transients``, ``sonar_dataset``, ``volume`` (the file objects), ``any_kind``
 (read_any, file_kind, inspect), ``stream`` (resumable writer), ``h5io`` (format ids,
 atomic writes), ``attributes`` (meta/params encoding), ``reader`` (validating reader),
-``checks`` (value checks).
+``checks`` (value checks), ``describe`` (summary and problems of any file, as
+``sonarsim info`` prints them).
 """
 from .any_kind import file_kind, inspect, read_any
+from .describe import describe, describe_and_check
 from .h5io import (FORMAT_VERSION, KIND_DATASET, KIND_NAMES, KIND_TRANSIENTS, KIND_VOLUME,
                    PARTIAL_SUFFIX, PathLike, atomic_write_h5)
 from .sonar_dataset import SonarDataset, declared_scene_box
@@ -28,4 +30,4 @@ from .volume import Volume
 
 __all__ = ["FORMAT_VERSION", "KIND_TRANSIENTS", "KIND_DATASET", "KIND_VOLUME", "Transients",
            "SonarDataset", "declared_scene_box", "Volume", "read_any", "file_kind", "inspect", "atomic_write_h5",
-           "DatasetStreamWriter", "TransientsLayout"]
+           "DatasetStreamWriter", "TransientsLayout", "describe", "describe_and_check"]

@@ -30,15 +30,18 @@ def read_any(path: PathLike) -> Transients | SonarDataset | Volume:
 
 
 @contextlib.contextmanager
-def inspect(path: PathLike, allow_partial: bool = False) -> Iterator[tuple[str, dict]]:
+def inspect(path: PathLike, allow_partial: bool = False,
+            expected: str | None = None) -> Iterator[tuple[str, dict]]:
     """Open a file and validate its schema without loading the large arrays; yield
     (kind, fields) where ``transients``/``waveforms``/``volume`` are open h5py.Dataset
     objects (valid inside the ``with`` block), everything else is loaded, and
     ``fields['format_version']`` is the file's version.  For a dataset file,
     ``fields['transients']`` is a fields dict of the same form or None.  With
     ``allow_partial`` an unfinished ``.partial`` file is accepted too: then
-    ``fields['complete']`` is False and ``fields['pings_done']`` counts the pings written."""
-    with open_checked(path, allow_partial=allow_partial) as (kind, rd):
+    ``fields['complete']`` is False and ``fields['pings_done']`` counts the pings written.
+    ``expected``: the kind the caller needs (e.g. ``KIND_DATASET``); another kind is a
+    one-line FormatError saying what the file is ("this is a volume file, ...")."""
+    with open_checked(path, expected, allow_partial=allow_partial) as (kind, rd):
         fields_ = _CLASSES[kind]._read_fields(rd, load=False)
         fields_["format_version"] = rd.version
         fields_["complete"] = rd.attr("", "complete", "bool", optional=True) is not False

@@ -18,6 +18,9 @@ KIND_NAMES = {KIND_TRANSIENTS: "transients", KIND_DATASET: "sonar dataset",
 # Root attributes every file carries; never part of ``meta``/``params``.
 HOUSEKEEPING = ("format", "format_version", "complete", "json_keys")
 PARTIAL_SUFFIX = ".partial"
+#: Why every reader refuses an unfinished file (root attribute ``complete = False``).
+INCOMPLETE = ("incomplete file (attribute 'complete' is false): the partial output of an "
+              "interrupted run; resume that run or delete the file")
 
 PathLike = str | os.PathLike
 
@@ -30,13 +33,21 @@ def commit(tmp: Path, final: Path) -> None:
     fsync_path(final.parent)
 
 
-def atomic_write_h5(path: PathLike, fill: Callable[[h5py.File], None]) -> Path:
+def nbytes_of(*arrays) -> int:
+    """Bytes of the given arrays (None counts 0): what writing them uncompressed needs."""
+    return sum(int(getattr(a, "nbytes", 0)) for a in arrays if a is not None)
+
+
+def atomic_write_h5(path: PathLike, fill: Callable[[h5py.File], None],
+                    size: float | None = None) -> Path:
     """Create HDF5 file ``path`` by calling ``fill(file)`` on a temporary file in the same
     directory and renaming it into place.  If ``fill`` raises, the temporary file is
     removed and an existing ``path`` is left untouched.  The temporary name does not end
-    in ``.h5``, so it is never mistaken for a finished file."""
+    in ``.h5``, so it is never mistaken for a finished file. ``size``: bytes the file will
+    hold, if known (the free space is checked first; :func:`sonarsim.atomic.atomic_path`);
+    a full disk or another OS error is a one-line :class:`~sonarsim.errors.WriteError`."""
     final = Path(path)
-    with atomic_path(final, keep_suffix=False) as tmp:
+    with atomic_path(final, keep_suffix=False, size=size) as tmp:
         with h5py.File(tmp, "w") as f:
             fill(f)
             f.flush()

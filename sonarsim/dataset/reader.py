@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from .attributes import decode_scalar
 from .checks import shape_error
-from .h5io import FORMAT_VERSION, HOUSEKEEPING, KIND_NAMES, PathLike
+from .h5io import FORMAT_VERSION, HOUSEKEEPING, INCOMPLETE, KIND_NAMES, PathLike
 
 
 class Reader:
@@ -127,8 +127,7 @@ class Reader:
             self.fail(f"attribute 'format_version' is {version}, expected >= 1")
         if not group and not allow_partial and \
                 self.attr(group, "complete", "bool", optional=True) is False:
-            self.fail("incomplete file (attribute 'complete' is false): the partial output of "
-                      "an interrupted run; resume that run or delete the file")
+            self.fail(INCOMPLETE)
         return kind
 
     def construct(self, cls, fields: dict):

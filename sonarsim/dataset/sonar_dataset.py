@@ -10,7 +10,8 @@ import numpy as np
 from ..errors import InputError
 from .attributes import check_attr_dict, write_attr_dict
 from .checks import as_array, as_float, as_int, as_name, as_unit_rows, ping_index
-from .h5io import KIND_DATASET, KIND_TRANSIENTS, PathLike, atomic_write_h5, write_header
+from .h5io import (KIND_DATASET, KIND_TRANSIENTS, PathLike, atomic_write_h5, nbytes_of,
+                   write_header)
 from .reader import Reader, open_checked
 from .transients import Transients
 
@@ -78,6 +79,9 @@ class SonarDataset:
     def _validate_header(self, dims: dict) -> None:
         """Validate every field but ``waveforms`` (N taken from ``dims`` if present)."""
         self.tx = as_array("tx", self.tx, ("N", 3), np.float64, dims)
+        if len(self.tx) < 1:
+            raise InputError("the dataset has no pings (0 rows); a sonar dataset needs at least "
+                             "one ping")
         self.rx = as_array("rx", self.rx, ("N", 3), np.float64, dims)
         self.boresight = as_unit_rows("boresight", self.boresight, dims)
         if self.rx_boresight is not None:
@@ -175,7 +179,14 @@ class SonarDataset:
             f.create_dataset("waveforms", data=self.waveforms)
             if self.transients is not None:
                 self.transients._write_group(f.create_group("transients"))
-        return atomic_write_h5(path, fill)
+        return atomic_write_h5(path, fill, size=self.nbytes())
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays a file of this dataset holds (uncompressed)."""
+        t = self.transients
+        return nbytes_of(self.waveforms, self.tx, self.rx, self.boresight, self.rx_boresight,
+                         self.pulse, self.temperatures, self.gt_vertices, self.gt_faces,
+                         None if t is None else t.transients)
 
     def _write_header_fields(self, f: h5py.Group) -> None:
         """Everything but ``waveforms`` and ``transients`` (shared with the stream writer)."""

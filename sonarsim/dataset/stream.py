@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from .attributes import check_attr_dict, decode_scalar, encode_attr, json_default
 from .checks import as_array, as_int
-from .h5io import PARTIAL_SUFFIX, PathLike, commit
+from .h5io import PARTIAL_SUFFIX, PathLike, commit, nbytes_of
 from .sonar_dataset import DATASET_ATTRS, SonarDataset
 from .transients import Transients
 
@@ -101,11 +101,32 @@ class DatasetStreamWriter:
         self._t_header = (None if transients is None
                           else _transients_header(transients, self.header))
         self.resumed = False
+        self._wrote = False               # a chunk was stored by this writer or a resumed one
         self._file: h5py.File | None = None
         if resume and self.partial_path.exists():
             self._file = self._reopen()
         if self._file is None:
             self._file = self._create()
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays the finished file holds (uncompressed)."""
+        h = self.header
+        rows = self.n_samples * 4 + (0 if self.layout is None
+                                     else self.layout.n_bounces * self.layout.n_bins * 4)
+        return self.n_pings * (rows + 5) + nbytes_of(
+            h.tx, h.rx, h.boresight, h.rx_boresight, h.pulse, h.temperatures, h.gt_vertices,
+            h.gt_faces)
+
+    def _fail(self, exc: BaseException):
+        """The one-line error for an OSError while writing; a partial file that holds no
+        written ping is removed (one that does stays, to be resumed)."""
+        from ..atomic import write_error
+        with contextlib.suppress(Exception):
+            self.close()
+        if not self._wrote:
+            with contextlib.suppress(OSError):
+                self.partial_path.unlink()
+        return write_error(self.partial_path, exc)
 
     # ---- opening
     def _fingerprints(self) -> dict[str, str]:
@@ -133,8 +154,16 @@ class DatasetStreamWriter:
         return out
 
     def _create(self) -> h5py.File:
+        from ..atomic import check_free_space
         with contextlib.suppress(FileNotFoundError):
             self.partial_path.unlink()
+        check_free_space(self.partial_path, self.nbytes())
+        try:
+            return self._create_file()
+        except OSError as exc:
+            raise self._fail(exc) from None
+
+    def _create_file(self) -> h5py.File:
         f = h5py.File(self.partial_path, "w")
         try:
             self.header._write_header_fields(f)
@@ -187,7 +216,7 @@ class DatasetStreamWriter:
         if damaged:
             print(f"warning: {label}: {damaged} written pings fail their checksum (the file "
                   "was damaged); they are written again", file=sys.stderr)
-        self.resumed = True
+        self.resumed = self._wrote = True
         return f
 
     def _row_crcs(self, f: h5py.File, start: int, stop: int, waveforms=None,
@@ -264,6 +293,13 @@ class DatasetStreamWriter:
         noise energies), kept with the partial file for a resumed run (:meth:`stats`)
         and dropped by :meth:`finish`."""
         f = self._require_open()
+        try:
+            self._write(f, start, waveforms, transients, stats)
+        except OSError as exc:
+            raise self._fail(exc) from None
+        self._wrote = True
+
+    def _write(self, f: h5py.File, start, waveforms, transients, stats) -> None:
         start = as_int("start", start, minimum=0)
         dims: dict = {"T": (self.n_samples, "n_samples")}
         wf = as_array("waveforms", waveforms, ("n", "T"), np.float32, dims)
@@ -305,6 +341,12 @@ class DatasetStreamWriter:
         ``meta``: free-form values known only at the end (e.g. measured statistics),
         added to the dataset's meta."""
         f = self._require_open()
+        try:
+            return self._finish(f, meta)
+        except OSError as exc:
+            raise self._fail(exc) from None
+
+    def _finish(self, f: h5py.File, meta) -> Path:
         done = self.done
         if not done.all():
             missing = np.flatnonzero(~done)

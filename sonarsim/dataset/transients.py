@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import InputError
 from .attributes import check_attr_dict, write_attr_dict
 from .checks import as_array, as_float, as_int, ping_index
-from .h5io import KIND_TRANSIENTS, PathLike, atomic_write_h5, write_header
+from .h5io import KIND_TRANSIENTS, PathLike, atomic_write_h5, nbytes_of, write_header
 from .reader import Reader, open_checked
 
 # Fixed-schema root attributes of a transients file (or group).
@@ -103,7 +103,8 @@ class Transients:
     # ---- files
     def write(self, path: PathLike) -> Path:
         """Write a transients file atomically; returns the path."""
-        return atomic_write_h5(path, self._write_group)
+        return atomic_write_h5(path, self._write_group,
+                               size=nbytes_of(self.transients, self.tx, self.rx))
 
     def _write_group(self, g: h5py.Group, data: bool = True) -> None:
         """Fill ``g`` (a file root or the ``transients`` group of a dataset file);

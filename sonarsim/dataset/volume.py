@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InputError
 from .attributes import check_attr_dict, write_attr_dict
 from .checks import as_array, as_name
-from .h5io import KIND_VOLUME, PathLike, atomic_write_h5, write_header
+from .h5io import KIND_VOLUME, PathLike, atomic_write_h5, nbytes_of, write_header
 from .reader import Reader, open_checked
 
 # Fixed-schema root attributes of a volume file.
@@ -123,7 +123,7 @@ class Volume:
             f.attrs["bounds"] = self.bounds
             f.attrs["method"] = self.method
             write_attr_dict(f, self.params)
-        return atomic_write_h5(path, fill)
+        return atomic_write_h5(path, fill, size=nbytes_of(self.volume))
 
     @classmethod
     def read(cls, path: PathLike) -> "Volume":
