@@ -353,7 +353,7 @@ class Engine:
             if self.sequential:
                 self.description = "this process, one task after the other"
             return
-        from distributed import Client
+        Client = _distributed().Client
         if self.scheduler:
             try:
                 self.client = Client(self.scheduler, timeout="20s")
@@ -505,6 +505,16 @@ class Engine:
         except BaseException:
             client.cancel(list(futures.values()))
             raise
+
+
+def _distributed():
+    """The ``distributed`` module (InputError in one line when dask is not installed)."""
+    try:
+        import distributed
+    except ModuleNotFoundError:
+        raise InputError("running jobs on a Dask cluster needs dask.distributed: pip install "
+                         "'sonarsim[batch]' (or run them here: --scheduler sequential)") from None
+    return distributed
 
 
 def _key_prefix(key: str) -> str:

@@ -99,20 +99,25 @@ def test_wheel_ships_plugins_and_scenes_and_works_installed(tmp_path):
     assert "sonarsim/plugins/sonar_transient.py" in names
     assert {f"sonarsim/scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")} <= names
     assert not any(n.startswith(("plugins/", "scenes/")) for n in names)   # no top-level packages
+    from sonarsim import data
+    assert {f"sonarsim/data/{n}" for n in data.names()} <= names          # the shipped data
+    assert {"sonarsim/batch/__init__.py", "sonarsim/batch/plan.py"} <= names
 
     site = tmp_path / "site"
     r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target",
                         str(site), str(wheel)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    code = ("import sonarsim, sonarsim.scene as s; from sonarsim import runtime\n"
+    code = ("import sonarsim, sonarsim.scene as s; from sonarsim import runtime, data\n"
             "mi = runtime.mitsuba(); i = mi.load_dict({'type': 'sonar_transient'})\n"
-            "print(sonarsim.__file__); print(s.resolve_scene_path('sphere')); print(type(i).__name__)")
+            "print(sonarsim.__file__); print(s.resolve_scene_path('sphere')); print(type(i).__name__)\n"
+            "print(data.path('meshes/bunny.obj'))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
                        env={**__import__("os").environ, "PYTHONPATH": str(site)}, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    where, scene, cls = r.stdout.split()
+    where, scene, cls, bunny = r.stdout.split()
     assert where.startswith(str(site)) and scene.startswith(str(site))
     assert cls == "SonarTransientIntegrator"
+    assert bunny.startswith(str(site)) and Path(bunny).is_file()
 @pytest.mark.parametrize("pkg", ["sonarsim.commands", "recon.commands"])
 def test_commands_do_not_borrow_from_each_other(pkg):
     """A command module may use shared helpers (``_``-prefixed modules), not another command."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import json
+import re
 import tempfile
 import warnings
 from dataclasses import dataclass, field
@@ -140,27 +141,20 @@ def build_simulation(params: dict, *, scene=None, poses=None, digests: dict | No
 
 
 def preflight(spec, poses, settings) -> None:
-    """The simulation's checks before any work, as ``sonarsim simulate`` makes them: sample
-    rate, pulse, recorded window, memory estimate (``sonarsim.simulate.preflight``)."""
-    from .. import simulate
-    own = getattr(simulate, "preflight", None)
-    if callable(own):
-        own(spec, poses, settings)
-        return
-    # Until sonarsim.simulate.preflight exists (requested from its owner): the CLI's checks.
-    from .. import limits
-    from ..simulate import CONVOLVE_BLOCK, simulation_window
-    pulse = settings.pulse
-    limits.check_fs(pulse.fs, "fs")
-    limits.check_pulse_length(len(pulse.samples), pulse.fs, f"pulse {pulse.spec}")
-    crop, window = simulation_window(poses, spec, pulse, settings.sound_speed,
-                                     settings.oversample)
-    need, detail = limits.simulate_memory(len(poses), settings.bounces, window.n_bins,
-                                          crop.num_samples, len(pulse.samples),
-                                          settings.oversample, settings.chunk_size,
-                                          CONVOLVE_BLOCK)
-    limits.check_memory(need, "the simulation", detail,
-                        "lower fs or oversample, shorten the pulse or simulate fewer poses")
+    """The simulation's checks before any work, exactly as ``sonarsim simulate`` makes them
+    (:func:`sonarsim.simulate.preflight`: settings, sample rate, pulse, recorded window,
+    memory estimate)."""
+    from ..simulate import preflight as simulation_preflight
+    simulation_preflight(spec, poses, settings)
+
+
+def manifest_terms(message: str) -> str:
+    """A message of the command line's rules in the manifest's words: ``--paths-per-pose``
+    becomes ``paths_per_pose`` for every job key (other options, e.g. ``--force``, stay)."""
+    keys = set(settings_fields()) | {"fs", "pulse_samples", "pulse", "poses"}
+    return re.sub(r"--([a-z][a-z0-9-]*)",
+                  lambda m: m.group(1).replace("-", "_")
+                  if m.group(1).replace("-", "_") in keys else m.group(0), message)
 
 
 def check_integrator(settings, cache: dict) -> None:
@@ -250,7 +244,7 @@ def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], No
         try:
             spec, digests = loader.job(params)
         except SonarsimError as exc:
-            raise InputError(f"{where}: {exc}") from None
+            raise InputError(f"{where}: {manifest_terms(str(exc))}") from None
         drafts.append((where, params, digests, spec.box))
     names = default_names([d[1] for d in drafts])
     counts = collections.Counter(names)
