@@ -179,10 +179,11 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
         sensor = _sonar_sensor(scene, sensor)
         with dr.resume_grad():
             ctx, roi, paths = self._sensor_context(scene, sensor, seed, spp)
-            hists = [dr.zeros(mi.Float, ctx["n_hist"]) for _ in range(ctx["parts"])]
+            buf_type = mi.Float64 if self.float64 else mi.Float
+            hists = [dr.zeros(buf_type, ctx["n_hist"]) for _ in range(ctx["parts"])]
             ctx["reduce_mode"] = dr.ReduceMode.Auto
             self._histograms(scene, HistogramSink(hists, ctx), ctx, roi, paths)
-            out = self._tensor(ctx, hists)
+            out = self._tensor(ctx, [mi.Float(h) for h in hists])
             dr.forward_to(out)
             return mi.TensorXf(dr.grad(out))
 
