@@ -13,8 +13,17 @@ A ``reconstruct`` table (docs/batch.md)::
     label = "bp"               # output DIR/<job>.<label>.h5 (default: the method)
     shape = [64, 64, 48]       # or voxel_size = 0.0032 (m, default) over the scene box
     bounds = [x0, x1, y0, y1, z0, z1]
-    evaluate = true            # or a table of recon.evaluation.evaluate_file options
+    deconvolve = "wiener"      # or "inr", or {method = "inr", iterations = 100, ...}: fit the
+                               # pulse-deconvolved data (made once per job and method)
+    evaluate = true            # or a table of recon.evaluation.evaluate_file options, or a
+                               # list of tables (each with its own 'name', default its protocol)
     upsample = 5               # any other key: an option of the solver's solve()
+
+Files: ``DIR/<job>.<label>.h5`` (the volume), ``DIR/<job>.<label>.json`` (the metrics of a
+single evaluation) or ``DIR/<job>.<label>.<name>.json`` (one per evaluation of a list),
+``DIR/<job>.pd-<method>[-<digest>].h5`` (a deconvolved dataset, shared by the steps that ask
+for the same deconvolution). The metrics files also record the step's wall times
+(``wall_s``: deconvolution, solve, evaluation).
 """
 from __future__ import annotations
 
@@ -22,6 +31,7 @@ import dataclasses
 import importlib
 import inspect
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +39,10 @@ import numpy as np
 from sonarsim.atomic import atomic_path
 from sonarsim.batch import ReconStep, step_id_of, summary_metrics
 from sonarsim.batch.naming import check_name
+from sonarsim.batch.plan import Evaluation
 from sonarsim.dataset import SonarDataset
 from sonarsim.errors import InputError, SonarsimError
+from sonarsim.identity import digest
 
 from . import checks
 from .export import DEFAULT_THRESHOLD, check_threshold
@@ -38,10 +50,12 @@ from .grid import DEFAULT_VOXEL_SIZE, box_bounds, grid_from_options
 
 METHOD_MODULES = {"backproject": "recon.backprojection", "bp": "recon.backprojection",
                   "gd": "recon.gradient_descent", "pfa": "recon.pfa", "nbp": "recon.nbp"}
-STEP_KEYS = ("method", "label", "shape", "voxel_size", "bounds", "evaluate")
+STEP_KEYS = ("method", "label", "shape", "voxel_size", "bounds", "evaluate", "deconvolve")
 NOT_OPTIONS = ("dataset", "grid", "progress", "callback", "checkpoint", "resume")
-NOT_EVALUATE = ("path", "gt_mesh", "sweep")        # evaluate_file arguments the step sets
+NOT_EVALUATE = ("path", "gt")                      # evaluate_file arguments the step sets
 EVALUATE_DEFAULTS = {"images": False}              # a batch renders no views unless asked
+DECONVOLVED_WAIT_S = 24 * 3600                     # how long a step waits for a shared
+                                                   # deconvolution another worker is making
 
 
 def solver(method: str, where: str):
@@ -139,34 +153,89 @@ def check_options(mod, module: str, options: dict, grid, where: str) -> None:
         raise InputError(f"{where}: invalid option ({exc})") from None
 
 
-def check_evaluate(value, where: str) -> dict | None:
-    """The evaluation options of a step (``true``, ``false`` or a table of
-    :func:`recon.evaluation.evaluate_file` keywords), with the batch's defaults; None for
-    no evaluation."""
+def _evaluation_options(value: dict, where: str) -> dict:
+    """One table of :func:`recon.evaluation.evaluate_file` keywords, checked, with the
+    batch's defaults."""
     from .evaluation import evaluate_file
-    if isinstance(value, bool):
-        return dict(EVALUATE_DEFAULTS) if value else None
-    if not isinstance(value, dict):
-        raise InputError(f"{where}: evaluate must be true, false or a table")
     params = inspect.signature(evaluate_file).parameters
     allowed = {k: p.default for k, p in params.items() if k not in NOT_EVALUATE}
-    unknown = sorted(set(value) - set(allowed))
+    unknown = sorted(set(value) - set(allowed) - {"name"})
     if unknown:
-        raise InputError(f"{where}: evaluate takes {', '.join(allowed)}, not "
-                         f"{', '.join(unknown)}")
+        raise InputError(f"{where}: evaluate takes {', '.join(allowed)} (and 'name' in a "
+                         f"list), not {', '.join(unknown)}")
     for key, v in value.items():
+        if key == "name":
+            continue
         default = DEFAULT_THRESHOLD if key == "threshold" else allowed[key]
         problem = _type_error(f"evaluate {key}", v, default)
         if problem:
             raise InputError(f"{where}: {problem}")
-    options = {**EVALUATE_DEFAULTS, **value}
+    options = {**EVALUATE_DEFAULTS, **{k: v for k, v in value.items() if k != "name"}}
     try:
         check_threshold(options.get("threshold", DEFAULT_THRESHOLD))
-        if "crop" in options and options["crop"] is not None:
+        if options.get("crop") is not None:
             _check_bounds6(options["crop"], "evaluate crop")
     except SonarsimError as exc:
         raise InputError(f"{where}: evaluate {exc}") from None
     return options
+
+
+def check_evaluate(value, where: str) -> list[tuple[str, dict]]:
+    """The evaluations of a step as (name, options): ``true``/``false``, a table of
+    :func:`recon.evaluation.evaluate_file` keywords (name ''), or a list of such tables,
+    each named by its ``name`` (default: its ``protocol``; names must differ)."""
+    if isinstance(value, bool):
+        return [("", dict(EVALUATE_DEFAULTS))] if value else []
+    if isinstance(value, dict):
+        return [("", _evaluation_options(value, where))]
+    if not isinstance(value, list) or not value or not all(isinstance(v, dict) for v in value):
+        raise InputError(f"{where}: evaluate must be true, false, a table or a list of tables")
+    out = []
+    for i, table in enumerate(value):
+        options = _evaluation_options(table, f"{where}: evaluate[{i}]")
+        name = table.get("name", options.get("protocol", "exact"))
+        if not isinstance(name, str):
+            raise InputError(f"{where}: evaluate[{i}] name must be a string")
+        check_name(name, f"{where}: evaluate[{i}]", "evaluation name")
+        if name in (n for n, _ in out):
+            raise InputError(f"{where}: two evaluations are named '{name}'; give each a "
+                             "distinct 'name'")
+        out.append((name, options))
+    return out
+
+
+def check_deconvolve(value, where: str) -> dict | None:
+    """The pulse deconvolution a step fits (``recon.deconvolution.deconvolve``) as
+    {'method', 'inr': INRSettings fields given}, or None."""
+    from .deconvolution import METHODS, INRSettings
+    if value is None or value is False:
+        return None
+    spec = {"method": value} if isinstance(value, str) else value
+    if not isinstance(spec, dict) or not isinstance(spec.get("method"), str):
+        raise InputError(f"{where}: deconvolve must be one of {', '.join(METHODS)} or a table "
+                         "with a 'method'")
+    method = spec["method"]
+    if method not in METHODS:
+        raise InputError(f"{where}: deconvolve method must be one of {', '.join(METHODS)}, "
+                         f"got {method!r}")
+    inr = {k: v for k, v in spec.items() if k != "method"}
+    if inr and method != "inr":
+        raise InputError(f"{where}: deconvolve options {', '.join(sorted(inr))} apply to "
+                         "method 'inr' only")
+    fields = {f.name: f.default for f in dataclasses.fields(INRSettings)}
+    for key, v in inr.items():
+        if key not in fields:
+            raise InputError(f"{where}: deconvolve takes the INR settings "
+                             f"{', '.join(fields)}, not {key!r}")
+        problem = _type_error(f"deconvolve {key}", v, fields[key])
+        if problem:
+            raise InputError(f"{where}: {problem}")
+    if method == "inr":
+        try:
+            INRSettings(**inr).validate()
+        except SonarsimError as exc:
+            raise InputError(f"{where}: deconvolve {exc}") from None
+    return {"method": method, "inr": inr}
 
 
 def _check_bounds6(value, what: str) -> list:
@@ -185,7 +254,7 @@ def plan_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
               box=None) -> ReconStep:
     """Validate one ``reconstruct`` table of a job (nothing runs): the method, the label, the
     grid over ``box`` (the job's scene box; its memory is checked as the command line checks
-    it), the solver's options and the evaluation options."""
+    it), the solver's options, the deconvolution and the evaluation options."""
     method = raw.get("method")
     if not isinstance(method, str):
         raise InputError(f"{where}: reconstruct needs a method ({', '.join(METHOD_MODULES)} "
@@ -217,47 +286,101 @@ def plan_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
     except SonarsimError as exc:
         raise InputError(f"{where}: {exc}") from None
     check_options(mod, module, options, grid, where)
-    evaluate = check_evaluate(raw.get("evaluate", False), where)
+    deconv = check_deconvolve(raw.get("deconvolve"), where)
+    evaluations = check_evaluate(raw.get("evaluate", False), where)
+    files = ()
+    if deconv is not None:
+        tag = deconv["method"] + (f"-{digest(deconv['inr'], length=8)}" if deconv["inr"]
+                                  else "")
+        deconv = {**deconv, "output": str(out / f"{job_name}.pd-{tag}.h5"),
+                  "id": digest(job_id, deconv, length=20)}
+        files = ((deconv["output"], "dataset", deconv["id"]),)
     params = dict(raw)
-    return ReconStep(label=label, params=params, output=str(out / f"{job_name}.{label}.h5"),
-                     eval_output=str(out / f"{job_name}.{label}.json"),
-                     step_id=step_id_of(job_id, params), evaluate=evaluate,
-                     settings={"module": module, "options": options,
-                               "shape": None if shape is None else tuple(shape),
-                               "voxel_size": float(voxel), "bounds": bounds})
+    return ReconStep(
+        label=label, params=params, output=str(out / f"{job_name}.{label}.h5"),
+        step_id=step_id_of(job_id, params),
+        evaluations=tuple(Evaluation(name, opts, str(out / (f"{job_name}.{label}.{name}.json"
+                                                             if name else
+                                                             f"{job_name}.{label}.json")))
+                          for name, opts in evaluations),
+        files=files,
+        settings={"module": module, "options": options,
+                  "shape": None if shape is None else tuple(shape),
+                  "voxel_size": float(voxel), "bounds": bounds, "deconvolve": deconv})
 
 
 # ----------------------------------------------------------------------------- run
 
+def deconvolved(job, spec: dict) -> SonarDataset:
+    """The job's dataset deconvolved as ``spec`` says, made once and shared by the job's
+    steps (the file carries the deconvolution's id as meta ``batch_job_id``; a step that
+    finds another worker making it waits for it)."""
+    from sonarsim.outputs import output_lock
+
+    from .deconvolution import INRSettings, deconvolve
+    from sonarsim.batch.records import existing_owner
+    path = spec["output"]
+    with output_lock(path, wait=DECONVOLVED_WAIT_S):
+        if Path(path).exists() and existing_owner(path, "dataset", spec["id"]) is None:
+            return SonarDataset.read(path)
+        dataset = SonarDataset.read(job.output)
+        inr = INRSettings(**spec["inr"]) if spec["method"] == "inr" else None
+        result = deconvolve(dataset, spec["method"], inr_settings=inr, progress=False)
+        result.meta["batch_job_id"] = spec["id"]
+        result.meta["batch_name"] = f"{job.name} (deconvolved: {spec['method']})"
+        result.write(path)
+        return result
+
+
 def reconstruct(job, step: ReconStep) -> dict:
     """Reconstruct (and evaluate) a batch job's dataset as its step asks; {'ran': True,
-    **metrics}. The grid is checked against the data as ``recon backproject`` checks it."""
+    **metrics} (an evaluation's metrics prefixed with its name). The grid is checked against
+    the data as ``recon backproject`` checks it."""
     from .evaluation import evaluate_file, json_safe
     from .grid import scene_box_of
     from .metrics import load_gt_mesh
     s = step.settings
     mod = importlib.import_module(s["module"])
-    dataset = SonarDataset.read(job.output)
+    wall = {}
+    t0 = time.perf_counter()
+    if s.get("deconvolve"):
+        dataset = deconvolved(job, s["deconvolve"])
+        wall["deconvolve"] = time.perf_counter() - t0
+    else:
+        dataset = SonarDataset.read(job.output)
     checks.check_signal(dataset, job.output, warn=lambda m: None)
     grid = grid_from_options(box_bounds(scene_box_of(dataset)), s["bounds"], s["shape"],
                              s["voxel_size"])
     checks.check_grid(dataset, grid, checks.bytes_per_voxel_of(mod))
+    t0 = time.perf_counter()
     volume = mod.solve(dataset, grid, progress=False, **s["options"])
+    wall["solve"] = time.perf_counter() - t0
     del dataset
     volume.params.update(dataset=job.output, batch_step_id=step.step_id,
                          batch_step=json.dumps(step.params, sort_keys=True))
-    if step.evaluate is None:
+    if not step.evaluations:
         volume.write(step.output)
         return {"ran": True}
-    options = dict(step.evaluate)
-    options["sweep"] = True
-    crop = options.pop("crop", None)
+    metrics = {}
+    gt = load_gt_mesh(job.output)
     with atomic_path(step.output, keep_suffix=False) as tmp_volume:
         volume.write(tmp_volume)         # evaluated before it becomes the step's output
-        result = evaluate_file(tmp_volume, load_gt_mesh(job.output), crop=crop, **options)
-        result.pop("sweep", None)
-        result["volume"] = step.output
-        with atomic_path(step.eval_output) as tmp:
-            tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
-                                       "metrics": json_safe(result)}, indent=1))
-    return {"ran": True, **summary_metrics(json_safe(result))}
+        results = []
+        for evaluation in step.evaluations:
+            options = dict(evaluation.options)
+            options.setdefault("sweep", True)
+            crop = options.pop("crop", None)
+            t0 = time.perf_counter()
+            result = evaluate_file(tmp_volume, gt, crop=crop, **options)
+            wall[f"evaluate{'_' + evaluation.name if evaluation.name else ''}"] = \
+                time.perf_counter() - t0
+            result["volume"] = step.output
+            results.append((evaluation, json_safe(result)))
+        for evaluation, result in results:
+            with atomic_path(evaluation.output) as tmp:
+                tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
+                                           "evaluation": evaluation.name, "wall_s": wall,
+                                           "metrics": result}, indent=1))
+            prefix = f"{evaluation.name}_" if evaluation.name else ""
+            metrics.update({prefix + k: v for k, v in summary_metrics(result).items()})
+    return {"ran": True, **metrics}

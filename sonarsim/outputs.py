@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -67,11 +68,12 @@ def check_output(path: str | os.PathLike, *, force: bool = False, option: str = 
 
 
 @contextlib.contextmanager
-def output_lock(path: str | os.PathLike) -> Iterator[Path]:
+def output_lock(path: str | os.PathLike, wait: float = 0.0) -> Iterator[Path]:
     """Hold the exclusive lock of output ``path`` (and its scratch files) while inside.
 
-    Raises :class:`OutputBusyError` at once if another process (or another open lock in this
-    process) holds it.
+    Raises :class:`OutputBusyError` if another process (or another open lock in this
+    process) holds it: at once, or after waiting up to ``wait`` seconds for it (e.g. for a
+    file another worker is making and this one will then read).
     """
     lock = lock_path(path)
     key = os.path.abspath(os.fspath(path))
@@ -93,6 +95,10 @@ def output_lock(path: str | os.PathLike) -> Iterator[Path]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
+            if wait > 0:
+                time.sleep(min(1.0, wait))
+                wait -= 1.0
+                continue
             raise OutputBusyError(f"{path}: another process is writing this output (lock "
                                   f"{lock} is held); wait for it to finish or choose another "
                                   "output") from None

@@ -410,3 +410,73 @@ def test_engine_starts_its_own_local_cluster():
     assert out["trim"].result == "unset" and out["omp"].result == "2"
     assert any("local cluster: 1 worker" in line for line in logged)
     assert any(line.startswith("batch: dashboard") for line in logged)
+
+
+def test_steps_share_one_deconvolution_and_evaluate_under_several_protocols(tmp_path,
+                                                                          monkeypatch):
+    """Table 2's pipeline as a manifest: two steps fit the same Wiener-deconvolved dataset
+    (made once, identified by its own id), one evaluated under both protocols."""
+    from sonarsim.dataset import SonarDataset, Volume
+    manifest = write_manifest(tmp_path / "m.toml", """
+[[job]]
+name = "a"
+scene = "sphere"
+[[job.reconstruct]]
+method = "backproject"
+label = "bp"
+shape = [9, 9, 7]
+deconvolve = "wiener"
+evaluate = [{samples = 500},
+            {name = "ref", protocol = "reference", volume_samples = 2000, samples = 500}]
+[[job.reconstruct]]
+method = "backproject"
+label = "bp2"
+shape = [9, 9, 7]
+deconvolve = "wiener"
+""")
+    plan = batch.plan_batch(manifest, tmp_path / "out", log=lambda s: None)
+    (job,) = plan.jobs
+    bp, bp2 = job.recon
+    assert bp.files == bp2.files and bp.files[0][0].endswith("a.pd-wiener.h5")
+    assert [e.output.rsplit("/", 1)[1] for e in bp.evaluations] == ["a.bp.exact.json",
+                                                                    "a.bp.ref.json"]
+    from recon import deconvolution
+    calls = []
+    real = deconvolution.deconvolve
+    monkeypatch.setattr(deconvolution, "deconvolve",
+                        lambda *a, **k: calls.append(a[1]) or real(*a, **k))
+    result = batch.run_batch(plan, Engine("sequential", log=lambda s: None), progress=False,
+                             log=lambda s: None)
+    assert result.status == {"a": "done"} and calls == ["wiener"]     # once for both steps
+    pd = SonarDataset.read(tmp_path / "out" / "a.pd-wiener.h5")
+    assert pd.waveform_kind != "real" and pd.meta["batch_job_id"] == bp.files[0][2]
+    vol = Volume.read(tmp_path / "out" / "a.bp.h5")
+    assert vol.params["dataset"] == job.output
+    import json
+    ref = json.loads((tmp_path / "out" / "a.bp.ref.json").read_text())
+    assert ref["metrics"]["protocol"] == "reference" and ref["wall_s"]["solve"] > 0
+    rows = read_csv(result.csv)
+    assert {"bp_exact_iou", "bp_ref_iou"} <= set(rows["a"])
+    stamp = os.stat(tmp_path / "out" / "a.pd-wiener.h5").st_mtime_ns
+    again = batch.run_batch(batch.plan_batch(manifest, tmp_path / "out", log=lambda s: None),
+                            Engine("sequential", log=lambda s: None), progress=False,
+                            log=lambda s: None)
+    assert again.submitted == 0 and os.stat(tmp_path / "out" / "a.pd-wiener.h5").st_mtime_ns \
+        == stamp
+
+
+@pytest.mark.parametrize("step, message", [
+    ('deconvolve = "magic"', "deconvolve method must be one of wiener, inr"),
+    ('deconvolve = {method = "wiener", iterations = 5}', "apply to method 'inr' only"),
+    ('deconvolve = {method = "inr", iterations = -1}', "inr iterations: must be a positive"),
+    ('evaluate = [{protocol = "exact"}, {protocol = "exact"}]', "two evaluations are named"),
+    ('evaluate = {threshold = 1.5}', "threshold must lie in [0, 1)"),
+    ('evaluate = {colour = "red"}', "evaluate takes"),
+])
+def test_step_deconvolution_and_evaluation_options_are_checked(tmp_path, step, message):
+    manifest = write_manifest(tmp_path / "m.toml", f'[[job]]\nscene = "sphere"\n'
+                                                   f'[job.reconstruct]\nmethod = "bp"\n'
+                                                   f'shape = [5, 5, 5]\n{step}\n')
+    with pytest.raises(InputError) as info:
+        batch.plan_batch(manifest, tmp_path / "out", log=lambda s: None)
+    assert message in str(info.value)

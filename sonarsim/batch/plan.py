@@ -23,21 +23,41 @@ RECON_ENTRY_POINTS = "sonarsim.batch_steps"
 
 
 @dataclass(frozen=True)
+class Evaluation:
+    """One evaluation of a step's volume: its ``name`` ('' for a step's only one), its
+    options (opaque to sonarsim) and its metrics file ``output`` (.json)."""
+    name: str
+    options: dict
+    output: str
+
+
+@dataclass(frozen=True)
 class ReconStep:
     """A reconstruction of a job's dataset, optionally evaluated against its GT mesh.
 
     Made and run by the recon plugin (``recon.batch_step``): ``settings`` are its validated
     settings, opaque to sonarsim; ``params``: the ``reconstruct`` table as given (for the
-    CSV and the id); ``evaluate``: evaluation options or None. Outputs: ``output`` (volume
-    .h5) and ``eval_output`` (metrics .json, written when ``evaluate`` is not None).
+    CSV and the id). Outputs: ``output`` (the volume .h5), one metrics .json per
+    :class:`Evaluation`, and ``files``: other files the step writes, as (path, kind, id)
+    with kind 'dataset' (e.g. a deconvolved dataset several steps share, carrying ``id`` as
+    its meta ``batch_job_id``).
     """
     label: str
     params: dict
     output: str
-    eval_output: str
     step_id: str
-    evaluate: dict | None = None
+    evaluations: tuple[Evaluation, ...] = ()
+    files: tuple[tuple[str, str, str], ...] = ()
     settings: dict = field(default_factory=dict)
+
+    @property
+    def evaluate(self) -> dict | None:
+        """The options of the first evaluation, or None (no evaluation)."""
+        return self.evaluations[0].options if self.evaluations else None
+
+    @property
+    def eval_output(self) -> str | None:
+        return self.evaluations[0].output if self.evaluations else None
 
 
 @dataclass(frozen=True)
@@ -54,12 +74,11 @@ class Job:
     recon: tuple[ReconStep, ...] = ()
 
     def outputs(self) -> list[str]:
-        """Every file this job writes (dataset, volumes, metrics)."""
+        """Every final file this job writes (dataset, volumes, metrics, shared files)."""
         out = [self.output]
         for step in self.recon:
-            out.append(step.output)
-            if step.evaluate is not None:
-                out.append(step.eval_output)
+            out += [step.output] + [e.output for e in step.evaluations]
+            out += [path for path, _, _ in step.files if path not in out]
         return out
 
 
@@ -279,22 +298,26 @@ def plan_batch(manifest: str | Path, out: str | Path, *, log: Callable[[str], No
 
 
 def job_files(job: Job) -> list[tuple[str, str]]:
-    """(path, what) of every file ``job`` may write: its dataset and the dataset's partial,
-    scratch and lock files; each step's volume, metrics and lock files."""
+    """(path, what) of every file ``job`` may write, once each: its dataset and the dataset's
+    partial, scratch and lock files; each step's volume, metrics, shared files (e.g. a
+    deconvolved dataset) and their locks."""
     from ..dataset import PARTIAL_SUFFIX
     from ..outputs import lock_path
     from ..simulate import scratch_path
     out = Path(job.output)
-    files = [(str(out), "dataset"), (str(out) + PARTIAL_SUFFIX, "partial dataset"),
-             (str(scratch_path(out)), "noiseless scratch file"),
-             (str(scratch_path(out)) + PARTIAL_SUFFIX, "partial scratch file"),
-             (str(lock_path(out)), "lock file")]
+    files = {str(out): "dataset", str(out) + PARTIAL_SUFFIX: "partial dataset",
+             str(scratch_path(out)): "noiseless scratch file",
+             str(scratch_path(out)) + PARTIAL_SUFFIX: "partial scratch file",
+             str(lock_path(out)): "lock file"}
     for step in job.recon:
-        files += [(step.output, f"'{step.label}' volume"),
-                  (str(lock_path(step.output)), f"'{step.label}' lock file")]
-        if step.evaluate is not None:
-            files.append((step.eval_output, f"'{step.label}' metrics"))
-    return files
+        files[step.output] = f"'{step.label}' volume"
+        files[str(lock_path(step.output))] = f"'{step.label}' lock file"
+        for e in step.evaluations:
+            files[e.output] = f"'{step.label}' metrics" + (f" '{e.name}'" if e.name else "")
+        for path, kind, _ in step.files:
+            files.setdefault(path, f"'{step.label}' {kind}")
+            files.setdefault(str(lock_path(path)), f"'{step.label}' {kind} lock file")
+    return list(files.items())
 
 
 def check_collisions(plan: Plan) -> None:
@@ -324,8 +347,8 @@ def check_existing(plan: Plan, force: bool = False) -> None:
     for job in plan.jobs:
         for path, kind, ident in [(job.output, "dataset", job.job_id)] + \
                 [(s.output, "volume", s.step_id) for s in job.recon] + \
-                [(s.eval_output, "metrics", s.step_id) for s in job.recon
-                 if s.evaluate is not None]:
+                [(e.output, "metrics", s.step_id) for s in job.recon for e in s.evaluations] + \
+                [f for s in job.recon for f in s.files]:
             problem = existing_owner(path, kind, ident)
             if problem:
                 raise InputError(f"{job.where}: {path} exists and is {problem}, not the result "

@@ -46,8 +46,9 @@ def dataset_record(path: str | Path, job_id: str) -> dict | None:
 
 
 def step_record(step) -> dict | None:
-    """The summary metrics of a finished reconstruction step (its volume, and its
-    evaluation if asked for, carry its id), else None."""
+    """The summary metrics of a finished reconstruction step (its volume and each of its
+    evaluations carry its id; an evaluation's metrics are prefixed with its name), else
+    None."""
     from ..dataset import KIND_VOLUME, inspect
     path = Path(step.output)
     if not path.is_file():
@@ -59,15 +60,17 @@ def step_record(step) -> dict | None:
                 return None
     except (SonarsimError, OSError):
         return None
-    if step.evaluate is None:
-        return {}
-    try:
-        saved = json.loads(Path(step.eval_output).read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(saved, dict) or saved.get("batch_step_id") != step.step_id:
-        return None
-    return summary_metrics(saved.get("metrics", {}))
+    out: dict = {}
+    for evaluation in step.evaluations:
+        try:
+            saved = json.loads(Path(evaluation.output).read_text())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(saved, dict) or saved.get("batch_step_id") != step.step_id:
+            return None
+        prefix = f"{evaluation.name}_" if evaluation.name else ""
+        out.update({prefix + k: v for k, v in summary_metrics(saved.get("metrics", {})).items()})
+    return out
 
 
 def existing_owner(path: str | Path, kind: str, ident: str) -> str | None:
