@@ -468,7 +468,7 @@ deconvolve = "wiener"
 @pytest.mark.parametrize("step, message", [
     ('deconvolve = "magic"', "deconvolve method must be one of wiener, inr"),
     ('deconvolve = {method = "wiener", iterations = 5}', "apply to method 'inr' only"),
-    ('deconvolve = {method = "inr", iterations = -1}', "inr iterations: must be a positive"),
+    ('deconvolve = {method = "inr", iterations = -1}', "deconvolve inr iterations: must be"),
     ('evaluate = [{protocol = "exact"}, {protocol = "exact"}]', "two evaluations are named"),
     ('evaluate = {threshold = 1.5}', "threshold must lie in [0, 1)"),
     ('evaluate = {colour = "red"}', "evaluate takes"),
