@@ -516,3 +516,47 @@ def test_info_on_partial_file_reports_progress(tmp_path, capsys):
     assert main(["info", str(tmp_path / "D.h5.partial")]) == 1     # readers refuse it
     out = capsys.readouterr().out
     assert "INCOMPLETE" in out and "2 pings written so far" in out
+
+
+# ---- compressed layout and the transients stream writer (rails, issue 24 item 3)
+
+def test_per_ping_arrays_are_compressed_and_read_back_exactly(tmp_path):
+    import h5py
+    from sonarsim.dataset import TransientsStreamWriter
+    t = make_transients(n=40, b=2, t=3000)
+    t.transients[:, :, 1000:] = 0                    # mostly empty, as real histograms
+    t.write(tmp_path / "one.h5")
+    with h5py.File(tmp_path / "one.h5") as f:
+        assert f["transients"].compression == "gzip" and f["transients"].chunks[1:] == (2, 3000)
+    assert (tmp_path / "one.h5").stat().st_size < 0.6 * t.transients.nbytes
+    header = Transients(t.transients[:, :, :1], t.path_start, t.path_bin_width, C, FS, K,
+                        t.tx, t.rx, dict(t.meta))
+    with TransientsStreamWriter(tmp_path / "streamed.h5", header, 3000) as w:
+        w.write(25, t.transients[25:])                # any order
+        w.write(0, t.transients[:25])
+    back = Transients.read(tmp_path / "streamed.h5")
+    assert np.array_equal(back.transients, t.transients)
+    assert np.array_equal(back.transients, Transients.read(tmp_path / "one.h5").transients)
+    d = make_dataset(n=7, t=300)
+    d.write(tmp_path / "d.h5")
+    with h5py.File(tmp_path / "d.h5") as f:
+        assert f["waveforms"].compression == "gzip"
+    assert np.array_equal(SonarDataset.read(tmp_path / "d.h5").waveforms, d.waveforms)
+
+
+def test_transients_stream_writer_leaves_nothing_when_it_fails(tmp_path):
+    from sonarsim.dataset import TransientsStreamWriter
+    t = make_transients(n=10, b=1, t=64)
+    header = Transients(t.transients[:, :, :1], t.path_start, t.path_bin_width, C, FS, K,
+                        t.tx, t.rx)
+    with pytest.raises(InputError, match="3 poses not written"):
+        with TransientsStreamWriter(tmp_path / "T.h5", header, 64) as w:
+            w.write(0, t.transients[:7])
+    with pytest.raises(RuntimeError, match="interrupted"):
+        with TransientsStreamWriter(tmp_path / "T.h5", header, 64) as w:
+            w.write(0, t.transients[:5])
+            raise RuntimeError("interrupted")
+    with pytest.raises(InputError, match="exceed the file's 10"):
+        with TransientsStreamWriter(tmp_path / "T.h5", header, 64) as w:
+            w.write(8, t.transients[:5])
+    assert list(tmp_path.iterdir()) == []

@@ -24,10 +24,11 @@ from .describe import describe, describe_and_check
 from .h5io import (FORMAT_VERSION, KIND_DATASET, KIND_NAMES, KIND_TRANSIENTS, KIND_VOLUME,
                    PARTIAL_SUFFIX, PathLike, atomic_write_h5)
 from .sonar_dataset import SonarDataset, declared_scene_box
-from .stream import DatasetStreamWriter, TransientsLayout
+from .stream import DatasetStreamWriter, TransientsLayout, TransientsStreamWriter
 from .transients import Transients
 from .volume import Volume
 
 __all__ = ["FORMAT_VERSION", "KIND_TRANSIENTS", "KIND_DATASET", "KIND_VOLUME", "Transients",
            "SonarDataset", "declared_scene_box", "Volume", "read_any", "file_kind", "inspect", "atomic_write_h5",
-           "DatasetStreamWriter", "TransientsLayout", "describe", "describe_and_check"]
+           "DatasetStreamWriter", "TransientsLayout", "TransientsStreamWriter", "describe",
+           "describe_and_check"]

@@ -11,7 +11,7 @@ from ..errors import InputError
 from .attributes import check_attr_dict, write_attr_dict
 from .checks import as_array, as_float, as_int, as_name, as_unit_rows, ping_index
 from .h5io import (KIND_DATASET, KIND_TRANSIENTS, PathLike, atomic_write_h5, nbytes_of,
-                   write_header)
+                   ping_layout, write_header)
 from .reader import Reader, open_checked
 from .transients import Transients
 
@@ -176,7 +176,8 @@ class SonarDataset:
         """Write a dataset file atomically; returns the path."""
         def fill(f: h5py.File) -> None:
             self._write_header_fields(f)
-            f.create_dataset("waveforms", data=self.waveforms)
+            f.create_dataset("waveforms", data=self.waveforms,
+                             **ping_layout(self.waveforms.shape, self.waveforms.dtype))
             if self.transients is not None:
                 self.transients._write_group(f.create_group("transients"))
         return atomic_write_h5(path, fill, size=self.nbytes())

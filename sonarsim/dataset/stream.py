@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from .attributes import check_attr_dict, decode_scalar, encode_attr, json_default
 from .checks import as_array, as_int
-from .h5io import PARTIAL_SUFFIX, PathLike, commit, nbytes_of
+from .h5io import PARTIAL_SUFFIX, PathLike, nbytes_of, ping_layout
 from .sonar_dataset import DATASET_ATTRS, SonarDataset
 from .transients import Transients
 
@@ -33,6 +33,34 @@ class TransientsLayout:
     fs: float
     oversample: int
     meta: dict = field(default_factory=dict)
+
+
+PER_PING = ("waveforms", "transients/transients")     # stored with h5io.ping_layout
+_COPY_BLOCK_BYTES = 64 << 20
+
+
+def _copy_compressed(src: h5py.Group, dst: h5py.Group, skip: tuple = (), prefix: str = "") -> None:
+    """Copy ``src`` into ``dst`` (attributes, groups, datasets but ``skip``), the per-ping
+    arrays (:data:`PER_PING`) block by block into compressed chunks."""
+    for key, value in src.attrs.items():
+        dst.attrs[key] = value
+    for name, obj in src.items():
+        if name in skip:
+            continue
+        path = prefix + name
+        if isinstance(obj, h5py.Group):
+            _copy_compressed(obj, dst.create_group(name), prefix=path + "/")
+        elif path in PER_PING:
+            data = dst.create_dataset(name, shape=obj.shape, dtype=obj.dtype,
+                                      **ping_layout(obj.shape, obj.dtype))
+            row = max(1, int(np.prod(obj.shape[1:])) * obj.dtype.itemsize)
+            step = max(1, _COPY_BLOCK_BYTES // row)
+            for a in range(0, obj.shape[0], step):
+                data[a:a + step] = obj[a:a + step]
+            for key, value in obj.attrs.items():
+                data.attrs[key] = value
+        else:
+            src.copy(obj, dst, name=name)
 
 
 def _dataset_header(**fields) -> SonarDataset:
@@ -67,9 +95,12 @@ class DatasetStreamWriter:
     (geometry, pulse, fs, ...) is the same as before (else FormatError naming the field);
     it first verifies every written ping against its checksum, and a ping whose data were
     damaged since (a disk error, a stray write) is marked missing and written again, with
-    a warning. A partial file that cannot be read at all is started over.  :meth:`finish` checks that
-    every ping is written, removes the bookkeeping, sets ``complete = True`` and renames
-    the file atomically to ``path``.  The result reads back equal to a one-shot
+    a warning. A partial file that cannot be read at all is started over.  The partial file
+    is uncompressed (chunks written in any order, checksums verifiable in place);
+    :meth:`finish` checks that every ping is written and writes ``path`` atomically as a
+    copy without the bookkeeping, the waveforms and transients compressed like a one-shot
+    :meth:`SonarDataset.write` (``h5io.ping_layout``), with ``complete = True``; the partial
+    file is removed only then. The result reads back equal to a one-shot
     :meth:`SonarDataset.write` of the same content.
 
     Keyword arguments are the :class:`SonarDataset` fields except ``waveforms`` (replaced
@@ -347,31 +378,36 @@ class DatasetStreamWriter:
             raise self._fail(exc) from None
 
     def _finish(self, f: h5py.File, meta) -> Path:
+        from ..atomic import atomic_path
         done = self.done
         if not done.all():
             missing = np.flatnonzero(~done)
             raise InputError(f"{self.partial_path}: {missing.size} pings not written yet "
                              f"(first: {int(missing[0])})")
-        if meta:
-            extra = check_attr_dict("meta", meta, DATASET_ATTRS)
-            json_keys = [decode_scalar(k) for k in np.atleast_1d(f.attrs.get("json_keys", []))]
+        extra = check_attr_dict("meta", meta, DATASET_ATTRS) if meta else {}
+        f.flush()
+        # The final file is a compressed copy (h5io.ping_layout) without the bookkeeping; the
+        # partial file stays until the copy is in place, so a crash here loses nothing.
+        with atomic_path(self.path, keep_suffix=False, size=self.nbytes()) as tmp, \
+                h5py.File(tmp, "w") as out:
+            _copy_compressed(f, out, skip=("stream",))
+            json_keys = [decode_scalar(k) for k in np.atleast_1d(out.attrs.get("json_keys", []))]
             for key, value in extra.items():
                 stored, is_json = encode_attr(key, value)
-                f.attrs[key] = stored
+                out.attrs[key] = stored
                 if is_json and key not in json_keys:
                     json_keys.append(key)
                 elif not is_json and key in json_keys:
                     json_keys.remove(key)
             if json_keys:
-                f.attrs["json_keys"] = json_keys
-            elif "json_keys" in f.attrs:
-                del f.attrs["json_keys"]
-        del f["stream"]
-        f.attrs["complete"] = True
-        f.flush()
+                out.attrs["json_keys"] = json_keys
+            elif "json_keys" in out.attrs:
+                del out.attrs["json_keys"]
+            out.attrs["complete"] = True
+            out.flush()
         f.close()
         self._file = None
-        commit(self.partial_path, self.path)
+        self.partial_path.unlink()
         return self.path
 
     def close(self) -> None:
@@ -391,3 +427,83 @@ class DatasetStreamWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class TransientsStreamWriter:
+    """Write a transients file [N, B, T] chunk of poses by chunk (``sonarsim render``), atomically.
+
+    ``header``: a validated :class:`Transients` with every field of the file but the
+    histograms (e.g. a one-bin stand-in: only its N, B, attributes, poses and meta are
+    used); ``n_bins``: T. The file is written under a temporary name beside ``path`` (root
+    attribute ``complete = False``, free space checked first) and renamed to ``path`` when
+    the ``with`` block ends normally after every pose was written; on an exception, or with
+    poses missing, nothing is left at ``path``. Histograms are compressed
+    (``h5io.ping_layout``)::
+
+        with TransientsStreamWriter("T.h5", header, n_bins) as w:
+            for start, hist in chunks:          # hist [n, B, T] float32
+                w.write(start, hist)
+    """
+
+    def __init__(self, path: PathLike, header: Transients, n_bins: int):
+        self.path = Path(path)
+        self.header = header
+        self.shape = (header.n_pings, header.n_bounces, as_int("n_bins", n_bins, minimum=1))
+        self._written = np.zeros(self.shape[0], dtype=bool)
+        self._stack: contextlib.ExitStack | None = None
+        self._file: h5py.File | None = None
+
+    def __enter__(self) -> "TransientsStreamWriter":
+        from ..atomic import atomic_path, write_error
+        stack = contextlib.ExitStack()
+        size = int(np.prod(self.shape)) * 4 + nbytes_of(self.header.tx, self.header.rx)
+        tmp = stack.enter_context(atomic_path(self.path, keep_suffix=False, size=size))
+        try:
+            f = stack.enter_context(h5py.File(tmp, "w"))
+            self.header._write_group(f, data=False)
+            f.attrs["complete"] = False                 # until the last pose is in
+            f.create_dataset("transients", shape=self.shape, dtype=np.float32,
+                             **ping_layout(self.shape, np.float32))
+        except OSError as exc:
+            stack.__exit__(*sys.exc_info())
+            raise write_error(self.path, exc) from None
+        except BaseException:
+            stack.__exit__(*sys.exc_info())
+            raise
+        self._stack, self._file = stack, f
+        return self
+
+    def write(self, start: int, hist) -> None:
+        """Store the histograms of poses ``start .. start + n - 1``: ``hist`` [n, B, T]."""
+        from ..atomic import write_error
+        if self._file is None:
+            raise InputError(f"{self.path}: transients writer is not open (use it in a with block)")
+        start = as_int("start", start, minimum=0)
+        dims = {"B": (self.shape[1], "bounces"), "T": (self.shape[2], "n_bins")}
+        h = as_array("transients", hist, ("n", "B", "T"), np.float32, dims)
+        stop = start + h.shape[0]
+        if stop > self.shape[0]:
+            raise InputError(f"poses {start}..{stop - 1} exceed the file's {self.shape[0]}")
+        try:
+            self._file["transients"][start:stop] = h
+        except OSError as exc:
+            raise write_error(self.path, exc) from None
+        self._written[start:stop] = True
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        stack, self._stack = self._stack, None
+        if stack is None:
+            return
+        try:
+            if exc_type is None:
+                if not self._written.all():
+                    missing = np.flatnonzero(~self._written)
+                    raise InputError(f"{self.path}: {missing.size} poses not written "
+                                     f"(first: {int(missing[0])}); nothing was kept")
+                self._file.attrs["complete"] = True
+        except BaseException:
+            self._file = None
+            stack.__exit__(*sys.exc_info())
+            raise
+        self._file = None
+        stack.__exit__(exc_type, exc, tb)

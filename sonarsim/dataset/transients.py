@@ -10,7 +10,8 @@ import numpy as np
 from ..errors import InputError
 from .attributes import check_attr_dict, write_attr_dict
 from .checks import as_array, as_float, as_int, ping_index
-from .h5io import KIND_TRANSIENTS, PathLike, atomic_write_h5, nbytes_of, write_header
+from .h5io import (KIND_TRANSIENTS, PathLike, atomic_write_h5, nbytes_of, ping_layout,
+                   write_header)
 from .reader import Reader, open_checked
 
 # Fixed-schema root attributes of a transients file (or group).
@@ -111,7 +112,8 @@ class Transients:
         ``data=False`` leaves the big ``transients`` array to the caller."""
         write_header(g, KIND_TRANSIENTS)
         if data:
-            g.create_dataset("transients", data=self.transients)
+            g.create_dataset("transients", data=self.transients,
+                             **ping_layout(self.transients.shape, np.float32))
         g.create_dataset("pings/tx", data=self.tx)
         g.create_dataset("pings/rx", data=self.rx)
         for name in TRANSIENT_ATTRS:
