@@ -25,7 +25,7 @@ def _waveforms(n_pings, n_t, seed=0):
     from recon import deconvolution as dc
     from sonarsim import signals
     rng = np.random.default_rng(seed)
-    p = signals.named_pulse("lfm-20k", 100e3)
+    p = signals.named_pulse("lfm-20k", signals.AIRSAS_FS)
     w = np.zeros((n_pings, n_t))
     for i in range(n_pings):
         w[i, rng.integers(50, n_t - 50, 6)] = rng.uniform(0.3, 1.0, 6)

@@ -40,7 +40,7 @@ def noise_dataset(n_pings: int, n_samples: int = 718, start_sample: int = 217):
     tx, rx, bore = cylindrical(n_pings)
     w = np.random.default_rng(0).standard_normal((len(tx), n_samples)).astype(np.float32)
     return SonarDataset(waveforms=w, tx=tx, rx=rx, boresight=bore,
-                        pulse=signals.named_pulse("lfm-20k", 100e3), fs=100e3,
+                        pulse=signals.named_pulse("lfm-20k", signals.AIRSAS_FS), fs=signals.AIRSAS_FS,
                         sound_speed=C, source="benchmark", start_sample=start_sample)
 
 

@@ -141,9 +141,9 @@ def numpy_pose(mi, scene, tx, rx, b_tx, b_rx, window, paths, bounces, rng, half_
 def mc_snr_db(halves: np.ndarray, crop, bounce_index=None) -> float:
     """MC SNR after matched filtering of half-estimates [2, n, B, T] (see the module doc)."""
     from sonarsim.fidelity import mf_energy
-    from sonarsim.signals import pulse_from_spec
+    from sonarsim.signals import AIRSAS_FS, pulse_from_spec
     from sonarsim.simulate import oversampled_pulse, transients_to_waveforms
-    pulse = pulse_from_spec("lfm-20k", 100e3).samples
+    pulse = pulse_from_spec("lfm-20k", AIRSAS_FS).samples
     pulse_os = oversampled_pulse(pulse, 20)
     wf = transients_to_waveforms(halves.mean(axis=0), pulse_os, 20, crop.num_samples,
                                  bounce_index)
@@ -156,7 +156,8 @@ def mc_snr_db(halves: np.ndarray, crop, bounce_index=None) -> float:
 def estimators(args, mi, scene, all_poses, window) -> int:
     """Surface estimator vs TX-cone tracer: cost per pose and MC SNR after matched filtering."""
     from sonarsim import geometry, render
-    crop = geometry.crop_window(all_poses, geometry.SIM_BOX, render.DEFAULT_SOUND_SPEED, 100e3)
+    from sonarsim.signals import AIRSAS_FS
+    crop = geometry.crop_window(all_poses, geometry.SIM_BOX, render.DEFAULT_SOUND_SPEED, AIRSAS_FS)
     pick = np.linspace(0, len(all_poses) - 1, args.estimator_poses).round().astype(int)
     poses = all_poses[pick]
     configs = [("surface", {"bounce1": "surface"}, 1, args.bounces),

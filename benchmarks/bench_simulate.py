@@ -71,7 +71,7 @@ def part_snr(spec, args) -> None:
     """MC SNR after matched filtering against time, old (cone) and new (surface) bounce 1."""
     from sonarsim import simulate as sim
     from sonarsim.halves import Sampling
-    from sonarsim.signals import pulse_from_spec
+    from sonarsim.signals import AIRSAS_FS, pulse_from_spec
     poses, _ = scan_subset(spec, args.snr_poses)
     scene = spec.to_mitsuba()
     print(f"\n## Monte-Carlo SNR after matched filtering vs time ({len(poses)} bunny poses "
@@ -85,7 +85,7 @@ def part_snr(spec, args) -> None:
     configs += [((1, 2, 3), "cone", Sampling(p, None)) for p in (10_000, 100_000, 1_000_000)]
     configs += [((1, 2, 3), "surface", Sampling(2, sp)) for sp in (8e-3, 4e-3, 2e-3)]
     for bounces, est, sampling in configs:
-        s = sim.SimulationSettings(pulse=pulse_from_spec("lfm-20k", 100e3), bounces=max(bounces),
+        s = sim.SimulationSettings(pulse=pulse_from_spec("lfm-20k", AIRSAS_FS), bounces=max(bounces),
                                    paths_per_pose=sampling.paths_per_pose, bounce1=est,
                                    surface_spacing=sampling.surface_spacing, seed=1,
                                    threads=args.threads)
@@ -129,13 +129,13 @@ def part_scan(spec, args) -> None:
     from sonarsim import simulate as sim
     from sonarsim.dataset import SonarDataset, stream
     from sonarsim.runtime import mitsuba
-    from sonarsim.signals import pulse_from_spec
+    from sonarsim.signals import AIRSAS_FS, pulse_from_spec
     mitsuba()
     integrator = sys.modules["sonarsim.plugins.sonar_transient"].SonarTransientIntegrator
 
     poses, step = scan_subset(spec, args.poses)
     n = len(poses)
-    settings = sim.SimulationSettings(pulse=pulse_from_spec("lfm-20k", 100e3), snr_db=20.0,
+    settings = sim.SimulationSettings(pulse=pulse_from_spec("lfm-20k", AIRSAS_FS), snr_db=20.0,
                                       bounces=3, seed=0, threads=args.threads)
     workdir = Path(tempfile.mkdtemp(prefix="bench_simulate_"))
     out = workdir / "bunny.h5"

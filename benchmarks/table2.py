@@ -240,7 +240,7 @@ def cylindrical_poses(settings: Settings, box):
 def simulation_settings(cell: Cell, settings: Settings):
     from sonarsim import signals, simulate
     values = {k: v for k, v in SIMULATION.items() if v is not None}
-    values.update(pulse=signals.pulse_from_spec(PULSES[cell.bandwidth], 100e3), snr_db=cell.snr_db,
+    values.update(pulse=signals.pulse_from_spec(PULSES[cell.bandwidth], signals.AIRSAS_FS), snr_db=cell.snr_db,
                   paths_per_pose=settings.paths_per_pose,
                   extra_meta={"poses": f"cylindrical 360x150, every {settings.angle_step} "
                                        f"angle(s), every {settings.height_step} height(s)"})

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from sonarsim.errors import InputError
+from sonarsim.signals import AIRSAS_FS
 
 
 def circular_poses(n_angles: int, radius: float = 0.85, heights=(0.1,),
@@ -53,7 +54,7 @@ def point_echoes(points, amplitudes, tx, rx, pulse, fs: float, sound_speed: floa
     return out.astype(np.float32)
 
 
-def point_dataset(points, amplitudes=1.0, n_pings: int = 90, *, heights=(0.1,), pulse=None, fs: float = 100e3,
+def point_dataset(points, amplitudes=1.0, n_pings: int = 90, *, heights=(0.1,), pulse=None, fs: float = AIRSAS_FS,
                   sound_speed: float = 343.0, n_samples: int | None = None,
                   start_sample: int | None = None, poses=None, scene_box=None):
     """A :class:`sonarsim.dataset.SonarDataset` of point scatterers on a circular scan

@@ -33,6 +33,7 @@ from .dataset import Transients, atomic_write_h5
 from .errors import InputError
 from .geometry import CropWindow, Poses, SceneBox, crop_window
 from .progress import progress_bar
+from .signals import AIRSAS_FS
 
 DEFAULT_BEAMS = {"tx_beam": "cone", "tx_beamwidth": 30.0, "rx_beam": "cone", "rx_beamwidth": 30.0}
 # The reference renderer (its airsas/create_render_commands.py): isotropic point light; a 25° perspective
@@ -84,7 +85,7 @@ def aligned_window(crop: CropWindow, bin_width: float, oversample: int) -> PathW
     return PathWindow(crop.min_dist - bin_width / 2, bin_width, crop.num_samples * int(oversample))
 
 
-def path_window(scene, poses: Poses, *, fs: float = 100e3, oversample: int = 20,
+def path_window(scene, poses: Poses, *, fs: float = AIRSAS_FS, oversample: int = 20,
                 sound_speed: float = DEFAULT_SOUND_SPEED, path_range=None,
                 box: SceneBox | None = None) -> PathWindow:
     """The histogram window :func:`render` uses for these arguments (see the module doc).
@@ -182,7 +183,7 @@ class RenderSettings:
 
     paths_per_pose: int = 10_000
     bounces: int = 3
-    fs: float = 100e3
+    fs: float = AIRSAS_FS
     oversample: int = 20
     sound_speed: float = DEFAULT_SOUND_SPEED
     path_range: tuple | None = None

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import InputError
+from ..signals import AIRSAS_FS
 
 
 def add_scene_and_pose_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
@@ -54,8 +55,8 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, bounces_help: str,
                    help="path-length bins per sample period (default 20, as the reference)")
     g.add_argument("--sound-speed", type=float, default=DEFAULT_SOUND_SPEED, metavar="C",
                    help=f"speed of sound in m/s (default {DEFAULT_SOUND_SPEED})")
-    g.add_argument("--fs", type=float, default=100e3, metavar="HZ",
-                   help="sample rate in Hz (default 100e3)")
+    g.add_argument("--fs", type=float, default=AIRSAS_FS, metavar="HZ",
+                   help=f"sample rate in Hz (default {AIRSAS_FS:g})")
     g.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     g.add_argument("--chunk-size", type=int, default=None, metavar="N",
                    help="poses per kernel launch (default: from a memory budget)")
