@@ -17,7 +17,7 @@ import pytest
 zarr = pytest.importorskip("zarr")
 
 from recon import synthetic                                   # noqa: E402
-from recon.straightforward import backproject_numpy           # noqa: E402
+from recon.backprojection import backproject                   # noqa: E402
 from recon.grid import Grid                                    # noqa: E402
 from sonarsim import signals                                   # noqa: E402
 from sonarsim.cli import main as sonarsim_main                 # noqa: E402
@@ -74,7 +74,7 @@ def test_decimated_round_trip_keeps_the_band_and_the_point(point_ds, tmp_path):
     a, b = mf(point_ds.waveforms), mf(back.waveforms)
     assert np.abs(a - b).max() < 0.02 * a.max()               # the pulse's band survives
     grid = Grid([[-0.03, 0.05], [-0.06, 0.02], [0.09, 0.09]], (41, 41, 1))
-    peak = _peak(backproject_numpy(back, grid), grid)
+    peak = _peak(backproject(back, grid, progress=False), grid)
     assert np.linalg.norm(peak[:2] - POINT[:2]) <= 0.0021      # one voxel (2 mm)
 
 
@@ -237,7 +237,7 @@ def test_openstb_point_backprojects_to_its_place(openstb_result, tmp_path, capsy
     ds = SonarDataset.read(out)
     assert ds.meta["box"] == [[0.3, 1.5], [2.6, 3.8], [0.0, 0.2]]
     grid = Grid([[0.3, 1.5], [2.6, 3.8], [TARGET[2], TARGET[2]]], (49, 49, 1))
-    peak = _peak(backproject_numpy(ds, grid), grid)
+    peak = _peak(backproject(ds, grid, progress=False), grid)
     assert np.linalg.norm(peak[:2] - TARGET[:2]) <= 0.025 * math.sqrt(2) + 1e-9   # one voxel
 
 
