@@ -65,6 +65,13 @@ MAX_VOXELS_PER_LAUNCH = 1 << 23
 BRICK = (4, 4, 4)              # lane order: voxel bricks (None = C order, the pre-brick layout)
 INTERPOLATIONS = interp.MODES
 LOOPS = ("auto", "unrolled", "symbolic")
+# Peak bytes of a run (see memory_estimate): per voxel, the Dr.Jit coordinates, |v|² and
+# accumulators (6 float32), the real/imaginary results, their complex128 sum and the
+# complex64 volume; per upsampled sample of a ping block, the upsampled complex128 signal and
+# its spectrum, the complex64 copy, the 4-float interpolation buffer and its Dr.Jit copy
+# (on the CPU up to four blocks are alive: two prepared ahead, the running one, the last).
+BYTES_PER_VOXEL = 24 + 8 + 16 + 8
+BYTES_PER_UPSAMPLED_SAMPLE = 16 + 16 + 8 + 16 + 2 * 16
 
 
 def _validate(grid, upsample, interpolation, tx_beam_mask):
@@ -217,6 +224,34 @@ def _lane_voxels(m, grid: Grid, flat: np.ndarray) -> list:
     return [x, y, z, r2]
 
 
+def memory_estimate(n_pings: int, n_samples: int, grid: Grid, upsample: int
+                    ) -> tuple[int, str]:
+    """(peak bytes, how they are made up) of backprojecting n_pings x n_samples onto grid."""
+    block = min(n_pings, 4 * PINGS_PER_BLOCK)
+    nx, ny, nz = grid.shape
+    per_block = block * n_samples * int(upsample) * BYTES_PER_UPSAMPLED_SAMPLE
+    need = nx * ny * nz * BYTES_PER_VOXEL + per_block
+    detail = (f"{nx} x {ny} x {nz} voxels x {BYTES_PER_VOXEL} bytes + {block} pings x "
+              f"{n_samples} samples x upsample {upsample} x {BYTES_PER_UPSAMPLED_SAMPLE} bytes")
+    return need, detail
+
+
+def check_options(grid: Grid, dataset=None, *, upsample: int = 5,
+                  interpolation: str = "linear", tx_beam_mask: float | None = None,
+                  **_ignored) -> None:
+    """The checks the command line, ``sonarsim batch`` and :func:`solve` make before any
+    work (InputError, one line): the option ranges, and with ``dataset`` the memory estimate
+    of :func:`memory_estimate` against the limit (:mod:`sonarsim.limits`)."""
+    from sonarsim import limits
+    limits.check_upsample(upsample)
+    _validate(grid, upsample, interpolation, tx_beam_mask)
+    if dataset is not None:
+        n_pings, n_t = np.asarray(dataset.waveforms).shape
+        need, detail = memory_estimate(n_pings, n_t, grid, upsample)
+        limits.check_memory(need, "backprojection", detail,
+                            "use a smaller grid, a smaller --upsample or fewer --pings")
+
+
 def _backend_is_cuda(m) -> bool:
     return m.__name__.startswith("drjit.cuda")
 
@@ -238,6 +273,10 @@ def solve(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linea
     volume = backproject(dataset, grid, upsample=upsample, interpolation=interpolation,
                          incoherent=incoherent, tx_beam_mask=tx_beam_mask,
                          per_ping_sound_speed=per_ping_sound_speed, progress=progress)
+    if tx_beam_mask is not None and not np.any(volume) and np.any(dataset.waveforms):
+        raise InputError(f"--beam-mask {float(tx_beam_mask):g}: no voxel centre of the grid lies "
+                         "inside any ping's TX cone, the volume would be all zero (widen the "
+                         "cone, or check the boresights and the grid)")
     params = {"upsample": int(upsample), "interpolation": interpolation,
               "incoherent": bool(incoherent),
               "tx_beam_mask_deg": float(tx_beam_mask) if tx_beam_mask is not None else -1.0,
@@ -413,37 +452,3 @@ def delay_and_sum(blocks, consts: np.ndarray, grid: Grid, n_up: int, *,
         out[order[v0:v0 + len(lanes)]] = lanes
         v0 += len(lanes)
     return out.reshape(grid.shape)
-
-
-def backproject_numpy(dataset, grid: Grid, *, upsample: int = 5, interpolation: str = "linear",
-                      incoherent: bool = False, tx_beam_mask: float | None = None,
-                      per_ping_sound_speed: bool = True) -> np.ndarray:
-    """Straightforward vectorised NumPy delay-and-sum in float64 (one pass over all voxels per
-    ping; reference implementation for tests and benchmarks; same conventions and options as
-    :func:`backproject`, the tent rule of :func:`recon.interp.tent_gather`)."""
-    _validate(grid, upsample, interpolation, tx_beam_mask)
-    measurements.check_dataset(dataset)
-    n_pings, n_t = np.asarray(dataset.waveforms).shape
-    n_up = n_t * upsample
-    consts = ping_constants(dataset, upsample, per_ping_sound_speed, tx_beam_mask).astype(np.float64)
-    pts = grid.points()
-    acc = np.zeros(len(pts), dtype=np.complex128)
-    for b0 in range(0, n_pings, PINGS_PER_BLOCK):
-        pings = np.arange(b0, min(b0 + PINGS_PER_BLOCK, n_pings))
-        buf = upsampled_signals(dataset, pings, upsample, incoherent)
-        sig = buf[..., 0].astype(np.float64) + 1j * buf[..., 1]
-        for j, i in enumerate(pings):
-            q = consts[i]
-            d1 = np.linalg.norm(pts - q[0:3], axis=1)
-            u = (d1 + np.linalg.norm(pts - q[3:6], axis=1)) * q[6] + q[7]
-            if interpolation == "nearest":
-                u = np.floor(u + 0.5)
-            if interpolation == "linear":
-                val = interp.tent_gather(sig[j], u)
-            else:
-                k, _, valid = interp.tent_nodes(u, n_up)
-                val = np.where(valid, sig[j, k], 0)
-            if tx_beam_mask is not None:
-                val = np.where((pts - q[0:3]) @ q[8:11] >= q[11] * d1, val, 0)
-            acc += val
-    return acc.astype(np.complex64).reshape(grid.shape)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import scipy.fft
@@ -270,16 +270,23 @@ class INRSettings:
     band_db: float = 30.0           # data term within this many dB of the pulse's peak
 
     def validate(self) -> None:
-        for name in ("pings_per_inr", "iterations", "n_levels", "features_per_level",
-                     "log2_hashmap_size", "base_resolution", "width", "hidden_layers"):
+        """Every field in its range (InputError, one line naming the option), before any
+        work: a level count whose finest resolution overflows, a width or batch that cannot
+        fit, are refused here rather than failing later as a NaN loss."""
+        for name, lo, hi in (("pings_per_inr", 1, 1 << 20), ("iterations", 1, 1_000_000),
+                             ("n_levels", 1, 64), ("features_per_level", 1, 8),
+                             ("log2_hashmap_size", 1, 24), ("base_resolution", 1, 1 << 20),
+                             ("width", 1, 1024), ("hidden_layers", 0, 16),
+                             ("seed", 0, 2 ** 32 - 1)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (
-                    0 if name == "hidden_layers" else 1):
-                raise InputError(f"inr {name}: must be a positive integer, got {v!r}")
-        for name in ("lr", "lr_final", "per_level_scale"):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise InputError(f"inr {name}: must be an integer in [{lo}, {hi}], got {v!r}")
+        for name, lo, hi in (("lr", 0.0, 1.0), ("lr_final", 0.0, 1.0),
+                             ("per_level_scale", 1.0, 4.0)):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InputError(f"inr {name}: must be positive, got {v!r}")
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi) and not (
+                    name == "per_level_scale" and v == 1.0):
+                raise InputError(f"inr {name}: must be in ({lo:g}, {hi:g}], got {v!r}")
         for name in ("sparsity", "phase"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -287,8 +294,32 @@ class INRSettings:
         if not (isinstance(self.band_db, (int, float)) and self.band_db > 0):
             raise InputError(f"inr band_db: must be positive (inf = full band), "
                              f"got {self.band_db!r}")
-        if self.log2_hashmap_size > 24:
-            raise InputError(f"inr log2_hashmap_size: at most 24, got {self.log2_hashmap_size}")
+        finest = self.base_resolution * self.per_level_scale ** (self.n_levels - 1)
+        if not finest <= MAX_RESOLUTION:
+            raise InputError(f"inr n_levels: {self.n_levels} levels from base resolution "
+                             f"{self.base_resolution} at scale {self.per_level_scale:g} reach a "
+                             f"resolution of {finest:.3g}, beyond {MAX_RESOLUTION} (float32 "
+                             "coordinates): use fewer levels or a smaller --per-level-scale")
+
+    def memory_estimate(self, n_samples: int) -> tuple[int, str]:
+        """(peak bytes, how they are made up) of fitting one batch of ``pings_per_inr`` pings
+        of ``n_samples`` samples: the hash tables with Adam's two moments and the gradient
+        (4 float32 per entry), and per sample the encoding and every MLP activation, kept for
+        the backward pass with their gradients (2 float32 each), plus the float64 NumPy loss
+        and its FFTs (about 16 float64 per sample)."""
+        entries = self.n_levels * min(2 ** self.log2_hashmap_size,
+                                      int(self.base_resolution * self.per_level_scale
+                                          ** (self.n_levels - 1) + 2) ** 2)
+        tables = entries * self.features_per_level * 4 * 4
+        samples = self.pings_per_inr * int(n_samples)
+        per_sample = (self.n_levels * self.features_per_level
+                      + self.width * max(self.hidden_layers, 1) * 2 + 1) * 4 * 2 + 16 * 8
+        return tables + samples * per_sample, (
+            f"hash tables {tables / 2**20:.0f} MiB + {self.pings_per_inr} pings x {n_samples} "
+            f"samples x {per_sample} bytes")
+
+
+MAX_RESOLUTION = 1 << 24     # finest hash-grid resolution: float32 coordinates resolve 2^-24
 
 
 # One line of help per INRSettings field (the `recon deconvolve` options are derived from both).
@@ -402,10 +433,14 @@ def inr(waveforms, pulse, settings: INRSettings | None = None, progress: bool = 
     its amplitude is a reflectivity in the waveform's units per unit pulse amplitude.
     """
     from sonarsim.progress import progress_bar
+    from sonarsim import limits
     st = settings or INRSettings()
     st.validate()
     s, p = _check_inputs(waveforms, pulse)
     n_pings, n_t = s.shape
+    need, detail = replace(st, pings_per_inr=min(st.pings_per_inr, n_pings)).memory_estimate(n_t)
+    limits.check_memory(need, "INR deconvolution", detail,
+                        "use fewer --pings-per-inr, a smaller --width or fewer --n-levels")
     scale = float(np.max(np.abs(s)))
     if not scale > 0:
         raise InputError("waveforms: all zero, nothing to deconvolve")

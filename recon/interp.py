@@ -1,7 +1,7 @@
 """Linear ("tent") interpolation of sampled signals at fractional sample indices.
 
 The one home of the delay-interpolation convention of the reconstructors: delay-and-sum
-backprojection *reads* a signal at a delay (:func:`tent_gather`, :func:`tent_gather_jit`);
+backprojection *reads* a signal at a delay (:func:`tent_gather`, :func:`tent_gather_diff_jit`);
 the voxel-driven delay model *spreads* a value onto the two neighbouring samples
 (:func:`tent_scatter`, the exact adjoint of :func:`tent_gather`).
 
@@ -22,11 +22,11 @@ Two variants of the rule exist only as options of backprojection: ``'nearest'`` 
 the sample ``floor(u + 0.5)``, window tested after rounding) and ``'floor'`` (value of
 ``s[floor(u)]``, the reference code's truncation of the delay to the lower sample).
 
-Dr.Jit kernels read from a packed buffer (:func:`packed_buffer`): per sample ``k`` the four
-float32 ``(Re s[k], Im s[k], Re s[k+1], Im s[k+1])``, so one 16-byte packet gather fetches
-both interpolation nodes. :func:`packed_diff_buffer` stores ``(Re s[k], Im s[k], Re Δ[k],
-Im Δ[k])`` with ``Δ[k] = s[k+1] − s[k]`` instead (read by :func:`tent_gather_diff_jit`), so
-that the tent is one fused multiply-add per component, ``s[k] + f·Δ[k]``.
+Dr.Jit kernels read from a packed buffer (:func:`packed_diff_buffer`): per sample ``k`` the
+four float32 ``(Re s[k], Im s[k], Re Δ[k], Im Δ[k])`` with ``Δ[k] = s[k+1] − s[k]``, so one
+16-byte packet gather fetches both interpolation nodes and the tent is one fused
+multiply-add per component, ``s[k] + f·Δ[k]`` (read by :func:`tent_gather_diff_jit`; the
+plain-pair form it replaced is kept as a test reference in :mod:`recon.straightforward`).
 
 Dr.Jit turns a packet gather into separate per-float gathers (about half as fast on the CPU)
 when the source array is not 64-byte aligned, which a NumPy array mapped into the LLVM
@@ -117,41 +117,12 @@ def packed_diff_buffer(s) -> np.ndarray:
     return buf
 
 
-def packed_buffer(s) -> np.ndarray:
-    """Packed buffer [P, n, 4] float32 ``(Re s[k], Im s[k], Re s[k+1], Im s[k+1])`` of complex
-    signals ``s`` [P, n] (``s[n]`` = 0), read by :func:`tent_gather_jit`."""
-    s = np.asarray(s, dtype=np.complex64)
-    pairs = np.ascontiguousarray(s).view(np.float32).reshape(s.shape + (2,))
-    buf = np.empty(s.shape + (4,), dtype=np.float32)
-    buf[..., 0:2] = pairs
-    buf[:, :-1, 2:4] = pairs[:, 1:]
-    buf[:, -1, 2:4] = 0.0
-    return buf
-
-
-def tent_gather_jit(m, buf, row, u, n, mode: str = "linear", active=True):
-    """Dr.Jit tent read of one signal per lane: ``buf`` a flat ``m.Float`` view of a
-    :func:`packed_buffer`, ``row`` (``m.UInt32``) the signal's first packet index (signal
-    number × n), ``u`` (``m.Float``) the fractional index, ``n`` the samples per signal
-    (int or ``m.UInt32``). Returns ``(re, im)``, 0 outside the window or where not ``active``.
-    ``mode``: 'linear' (the tent), 'nearest' or 'floor' (see the module docstring)."""
-    import drjit as dr
-    if mode not in MODES:
-        raise ValueError(f"mode: choose one of {MODES}, got {mode!r}")
-    if mode == "nearest":
-        u = dr.floor(u + 0.5)
-    valid = active & (u >= 0) & (u <= m.Float(n - 1))
-    fl = dr.floor(u)
-    s = dr.gather(m.Array4f, buf, row + m.UInt32(m.Int32(fl)), valid)
-    if mode != "linear":
-        return s[0], s[1]
-    f = u - fl
-    return dr.fma(f, s[2] - s[0], s[0]), dr.fma(f, s[3] - s[1], s[1])
-
-
 def tent_gather_diff_jit(m, buf, row, u, n, mode: str = "linear", active=True):
-    """:func:`tent_gather_jit` reading a :func:`packed_diff_buffer` (same arguments and
-    results up to float32 round-off): ``s[k] + f·Δ[k]``. The window test ``0 ≤ u ≤ n − 1`` is
+    """Dr.Jit tent read of one signal per lane from a :func:`packed_diff_buffer`: ``buf`` its
+    flat ``m.Float`` view, ``row`` (``m.UInt32``) the signal's first packet index (signal
+    number × n), ``u`` (``m.Float``) the fractional index, ``n`` the samples per signal (int or
+    ``m.UInt32``). Returns ``(re, im)`` = ``s[k] + f·Δ[k]``, 0 outside the window or where not
+    ``active``; ``mode``: 'linear' (the tent), 'nearest' or 'floor' (module docstring). The window test ``0 ≤ u ≤ n − 1`` is
     one unsigned comparison of the float's bits (for u ≥ +0 the bit patterns order like the
     values, and a negative u has the sign bit set); u is never −0 here."""
     import drjit as dr

@@ -46,6 +46,9 @@ from . import measurements
 from .grid import Grid
 
 MAX_POINTS_PER_NUFFT = 4_000_000   # polar samples per finufft call (bounds memory)
+# Peak bytes per voxel: finufft's 2x-oversampled complex128 fine grid (8 x 16), its complex128
+# result and our accumulator (2 x 16), the complex64 volume (8).
+BYTES_PER_VOXEL = 8 * 16 + 2 * 16 + 8
 _NEIGHBOURS = (12, 200)            # nearest look directions for the aperture-area estimate
 
 
@@ -62,6 +65,15 @@ def _validate(grid, band_db, taper, eps, reference_point):
         p = np.asarray(reference_point, dtype=np.float64)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             raise InputError(f"reference_point: expected three finite numbers, got {reference_point!r}")
+
+
+def check_options(grid: Grid, dataset=None, *, reference_point=None, band_db: float = -20.0,
+                  taper: float = 0.25, eps: float = 1e-6, **_ignored) -> None:
+    """The checks the command line, ``sonarsim batch`` and :func:`solve` make before any work
+    (InputError, one line): the option ranges and the grid's memory."""
+    from .checks import check_grid_memory
+    _validate(grid, band_db, taper, eps, reference_point)
+    check_grid_memory(grid, BYTES_PER_VOXEL, what="polar formatting")
 
 
 def complex_measurements(dataset, pings) -> np.ndarray:
@@ -261,16 +273,3 @@ def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
               "n_pings": int(len(dataset.waveforms)), **info}
     return Volume(volume=image, bounds=np.asarray(grid.bounds, dtype=np.float64),
                   method="pfa", params=params)
-
-
-def pfa_direct(dataset, grid: Grid, **options) -> np.ndarray:
-    """The same image by direct summation Σ_j w_j S_j exp(−j k_j·(x_l − x0)) over every voxel
-    (NumPy, O(voxels × samples): small grids only; the reference for tests)."""
-    raster = polar_samples(dataset, grid, **options)
-    pings = np.arange(len(raster["c"]))
-    k = wavenumbers(raster, pings).reshape(-1, 3)
-    s = phase_referenced(dataset, raster, pings).reshape(-1)
-    x = grid.points() - raster["x0"]
-    out = np.exp(-1j * (x @ k.T)) @ s
-    out /= float(np.sum(raster["weights"] * raster["response"][None, :]))
-    return out.reshape(grid.shape).astype(np.complex64)

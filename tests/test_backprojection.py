@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from recon import backprojection as bp
-from recon import synthetic
+from recon import straightforward, synthetic
 from recon.grid import Grid
 from sonarsim import signals
 from sonarsim.dataset import SonarDataset, Volume
@@ -45,7 +45,7 @@ def test_point_scatterer_focuses_within_one_voxel(point_ds, grid3d):
 def test_matches_numpy_reference_implementation(point_ds):
     g = Grid([[-0.03, 0.03], [-0.03, 0.03], [0.08, 0.11]], (9, 8, 3))
     a = bp.backproject(point_ds, g, upsample=3, progress=False)
-    b = bp.backproject_numpy(point_ds, g, upsample=3)
+    b = straightforward.backproject_numpy(point_ds, g, upsample=3)
     np.testing.assert_allclose(a, b, atol=2e-5 * np.abs(b).max())
 
 
@@ -83,7 +83,7 @@ def test_fused_kernel_matches_float64_numpy(temperature_ds, loop, mask, incohere
     delay error of 0.1 sample would give ~4e-2."""
     kw = dict(upsample=3, interpolation=mode, incoherent=incoherent, tx_beam_mask=mask)
     a = bp.backproject(temperature_ds, FUSED_GRID, progress=False, loop=loop, **kw)
-    b = bp.backproject_numpy(temperature_ds, FUSED_GRID, **kw)
+    b = straightforward.backproject_numpy(temperature_ds, FUSED_GRID, **kw)
     scale = np.abs(b).max()
     assert scale > 0
     err = np.abs(a - b)
@@ -97,13 +97,13 @@ def test_fused_kernel_matches_float64_numpy(temperature_ds, loop, mask, incohere
         assert np.mean(err <= 1e-4 * scale) > 0.98
         assert err.max() <= 2 * step + 1e-4 * scale
     if mask is not None:     # the mask really removes contributions in this case
-        full = bp.backproject_numpy(temperature_ds, FUSED_GRID, **{**kw, "tx_beam_mask": None})
+        full = straightforward.backproject_numpy(temperature_ds, FUSED_GRID, **{**kw, "tx_beam_mask": None})
         assert np.abs(full - b).max() > 0.1 * scale
 
 
 def _straightforward_float32(ds, grid, upsample, mask, incoherent):
     """The pre-fusion float32 form, ping by ping: |v - t| by subtraction, the tent read of
-    recon.interp.tent_gather_jit from the (s[k], s[k+1]) buffer, the beam test on v - t."""
+    recon.straightforward.tent_gather_jit from the (s[k], s[k+1]) buffer, the beam test on v - t."""
     import drjit as dr
     from recon import interp
     from recon._jit import jit
@@ -111,7 +111,7 @@ def _straightforward_float32(ds, grid, upsample, mask, incoherent):
     c = bp.ping_constants(ds, upsample, True, mask)
     s = bp.upsampled_signals(ds, np.arange(ds.n_pings), upsample, incoherent)
     n_up = s.shape[1]
-    buf = m.Float(interp.packed_buffer(s[..., 0] + 1j * s[..., 1]).ravel())
+    buf = m.Float(straightforward.packed_buffer(s[..., 0] + 1j * s[..., 1]).ravel())
     pts = grid.points().astype(np.float32)
     vx, vy, vz = (m.Float(pts[:, i]) for i in range(3))
     are, aim = dr.zeros(m.Float, len(pts)), dr.zeros(m.Float, len(pts))
@@ -121,7 +121,7 @@ def _straightforward_float32(ds, grid, upsample, mask, incoherent):
         d2 = dr.sqrt((vx - float(q[3])) ** 2 + (vy - float(q[4])) ** 2 + (vz - float(q[5])) ** 2)
         u = (d1 + d2) * float(q[6]) + float(q[7])
         active = dx * float(q[8]) + dy * float(q[9]) + dz * float(q[10]) >= float(q[11]) * d1
-        re, im = interp.tent_gather_jit(m, buf, m.UInt32(i * n_up), u, n_up, "linear", active)
+        re, im = straightforward.tent_gather_jit(m, buf, m.UInt32(i * n_up), u, n_up, "linear", active)
         are, aim = are + re, aim + im
         dr.eval(are, aim)
     return (np.asarray(are) + 1j * np.asarray(aim)).reshape(grid.shape)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from recon import interp
+from recon import interp, straightforward
 
 
 def test_tent_reproduces_linear_signals_and_is_zero_outside_the_window():
@@ -49,8 +49,8 @@ def test_jit_gather_matches_numpy(mode):
     u = rng.uniform(-1.5, n + 0.5, lanes).astype(np.float32)
     u[:4] = [0.0, n - 1, n - 1.4, n - 0.6]
     sig = rng.integers(0, p, lanes)
-    buf = m.Float(interp.packed_buffer(s).ravel())
-    re, im = interp.tent_gather_jit(m, buf, m.UInt32(sig * n), m.Float(u), n, mode)
+    buf = m.Float(straightforward.packed_buffer(s).ravel())
+    re, im = straightforward.tent_gather_jit(m, buf, m.UInt32(sig * n), m.Float(u), n, mode)
     dr.eval(re, im)
     got = np.asarray(re) + 1j * np.asarray(im)
     uu = u.astype(np.float64)

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from recon import pfa, synthetic
+from recon import pfa, straightforward, synthetic
 from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
@@ -58,7 +58,7 @@ def test_nufft_equals_the_direct_sum():
                                  sound_speed=C)
     g = Grid([[-0.01, 0.012], [-0.006, 0.01], [0.09, 0.11]], (12, 9, 7))  # even and odd sizes
     fast = pfa.solve(ds, g, progress=False, eps=1e-9).volume
-    direct = pfa.pfa_direct(ds, g)
+    direct = straightforward.pfa_direct(ds, g)
     assert np.abs(fast - direct).max() < 1e-5 * np.abs(direct).max()
     # and the direct sum is not trivially small or constant
     assert np.abs(direct).max() > 0.5 and np.abs(direct).std() > 0.1
@@ -96,6 +96,31 @@ def test_two_dimensional_scan_at_one_height():
     for p in pts:
         idx, _ = _local_peak(mag, g, p)
         assert _within_one_voxel(idx, g, p), (p, g.position_of(idx))
+
+
+def test_density_compensation_gives_the_annulus_psf():
+    """A full circle at the target's height samples k-space on rings, density ∝ 1/|k|: with
+    the density compensation (weights ∝ |k| per ring, equal per ping) the image of a point at
+    the reference point is the 2-D Fourier transform of the band's annulus,
+    PSF(r) = Σ_f W(f) J0(k r) k / Σ_f W(f) k, W = Tukey window × the matched filter's
+    spectrum, k = 2πf/c·|û_TX + û_RX| (Hankel transform, closed form per frequency); measured
+    to 3e-4. With the window alone (no compensation) the first sidelobe is 0.14 instead of
+    0.21 (the profile off by 0.08)."""
+    from scipy.special import j0
+    p = np.array([0.0, 0.0, 0.1])
+    ds = synthetic.point_dataset([p], n_pings=360, heights=(0.1,), sound_speed=C)
+    g = Grid([[0.0, 0.04], [0.0, 0.0], [0.1, 0.1]], (81, 1, 1))
+    image = pfa.solve(ds, g, progress=False, reference_point=p, taper=0.25).volume.ravel()
+    raster = pfa.polar_samples(ds, g, reference_point=p, taper=0.25)
+    f = raster["freqs"]
+    k = 2 * np.pi * f / C * np.linalg.norm(raster["look_sum"], axis=1).mean()
+    u = (f - f[0]) / (f[-1] - f[0])
+    window = np.where(u < 0.125, 0.5 * (1 - np.cos(np.pi * u / 0.125)),
+                      np.where(u > 0.875, 0.5 * (1 - np.cos(np.pi * (1 - u) / 0.125)), 1.0))
+    w = window * raster["response"] * k
+    expected = j0(np.outer(g.axes()[0], k)) @ w / w.sum()
+    assert np.abs(image / image[0] - expected).max() < 0.01
+    assert expected.min() < -0.2                       # the sidelobe is there to be matched
 
 
 def test_far_field_defocus_grows_with_distance_from_the_reference_point():

@@ -5,10 +5,6 @@ import argparse
 
 from . import _common
 
-# Peak bytes per voxel: finufft's 2x-oversampled complex128 fine grid (8 x 16), its complex128
-# result and our accumulator (2 x 16), the complex64 volume (8).
-BYTES_PER_VOXEL = 8 * 16 + 2 * 16 + 8
-
 HELP = ("Polar formatting: place each ping's spectrum at k = 2πf/c·(û_TX + û_RX) about a "
         "reference point and invert with a 3-D non-uniform FFT (far-field baseline).")
 
@@ -30,7 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from .. import pfa
     ds = _common.load_dataset(args)
-    grid = _common.grid_from_args(args, ds, bytes_per_voxel=BYTES_PER_VOXEL)
+    grid = _common.grid_from_args(args, ds, bytes_per_voxel=pfa.BYTES_PER_VOXEL)
+    pfa.check_options(grid, ds, reference_point=args.reference_point, band_db=args.band_db,
+                      taper=args.taper, eps=args.eps)
     vol = pfa.solve(ds, grid, reference_point=args.reference_point, band_db=args.band_db,
                     taper=args.taper, eps=args.eps,
                     per_ping_sound_speed=not args.mean_sound_speed,
