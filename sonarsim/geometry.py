@@ -138,8 +138,7 @@ AIRSAS_REAL_BOX = SceneBox((-0.125, -0.125, 0.0), (0.125, 0.125, 0.2))  # refere
 class Poses:
     """N sonar pings: TX and RX positions [N, 3] (m) and unit boresights [N, 3].
 
-    Boresights are normalised on construction. ``boresight`` is an alias of
-    ``tx_boresight`` (the single direction the dataset format stores).
+    Boresights are normalised on construction.
     """
 
     tx: np.ndarray
@@ -172,10 +171,6 @@ class Poses:
             return cls(tx, rx, b, b)
         target = _vec3(target, "target")
         return cls(tx, rx, _unit(target - tx, "tx_boresight"), _unit(target - rx, "rx_boresight"))
-
-    @property
-    def boresight(self) -> np.ndarray:
-        return self.tx_boresight
 
     def __len__(self) -> int:
         return self.tx.shape[0]
@@ -447,10 +442,6 @@ class CropWindow:
     num_samples: int
     min_dist: float
     max_dist: float
-
-    @property
-    def stop_sample(self) -> int:
-        return self.min_sample + self.num_samples
 
     def path_lengths(self, sound_speed: float, fs: float) -> np.ndarray:
         """[num_samples] round-trip path length (m) of each sample in the window."""

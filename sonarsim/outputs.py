@@ -136,49 +136,6 @@ def output_locks(paths: Iterable[str | os.PathLike]) -> Iterator[None]:
         yield
 
 
-def digest(*values) -> str:
-    """A hex digest of values: NumPy arrays by dtype, shape and bytes; meshes by vertices
-    and faces; dataclasses, dicts, lists and scalars by content (for request identities;
-    callables are skipped). Other objects count by ``repr``, which must not hold addresses."""
-    import dataclasses
-    import hashlib
-    import numpy as np
-
-    h = hashlib.sha256()
-
-    def feed(v) -> None:
-        if isinstance(v, np.ndarray):
-            h.update(f"nd{v.dtype}{v.shape}".encode())
-            h.update(np.ascontiguousarray(v).tobytes())
-        elif dataclasses.is_dataclass(v) and not isinstance(v, type):
-            h.update(type(v).__name__.encode())
-            for f in dataclasses.fields(v):
-                h.update(f.name.encode())
-                feed(getattr(v, f.name))
-        elif isinstance(v, dict):
-            h.update(b"{")
-            for k in sorted(v, key=str):
-                h.update(str(k).encode())
-                feed(v[k])
-            h.update(b"}")
-        elif isinstance(v, (list, tuple)):
-            h.update(b"[")
-            for item in v:
-                feed(item)
-            h.update(b"]")
-        elif hasattr(v, "vertices") and hasattr(v, "faces"):      # a mesh
-            feed(np.asarray(v.vertices))
-            feed(np.asarray(v.faces))
-        elif callable(v):
-            h.update(b"callable")
-        else:
-            h.update(repr(v).encode())
-
-    for value in values:
-        feed(value)
-    return h.hexdigest()[:24]
-
-
 def finished_request(path: str | os.PathLike, request_id: str) -> bool:
     """Whether ``path`` is a complete sonarsim file whose meta ``request_id`` is ``request_id``
     (the same command with the same settings already finished it)."""
