@@ -29,7 +29,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
-from .dataset import Transients, atomic_write_h5
+from .dataset import Transients, TransientsStreamWriter
 from .errors import InputError
 from .geometry import CropWindow, Poses, SceneBox, crop_window
 from .progress import progress_bar
@@ -374,7 +374,8 @@ def render_to_file(scene, poses: Poses, out, settings: RenderSettings | None = N
     bytes of histogram buffers, default 768 MiB), whatever the number of poses. The file
     is written under a temporary name in ``out``'s directory with root attribute
     ``complete = False`` and renamed to ``out`` only when every pose is in
-    (:func:`sonarsim.dataset.atomic_write_h5`); an interrupted run leaves no file at ``out``. The file equals ``render_poses(...).write(out)`` with the
+    (:class:`sonarsim.dataset.TransientsStreamWriter`: free space checked first, histograms
+    compressed); an interrupted run leaves no file at ``out``. The file equals ``render_poses(...).write(out)`` with the
     same arguments and ``meta`` merged into the transients' meta (the bytes of
     ``transients`` are the same for the same ``chunk_size``; across chunk sizes up to a
     rare 1-ulp difference, see the integrator's doc). Returns (out, (N, bounces, T), window).
@@ -384,17 +385,11 @@ def render_to_file(scene, poses: Poses, out, settings: RenderSettings | None = N
     # A validated header: the real one but for a one-bin stand-in of the histograms.
     header = plan.transients(np.zeros(shape[:2] + (1,), np.float32), poses, meta)
 
-    def fill(f) -> None:
-        header._write_group(f, data=False)      # attributes, pings/tx, pings/rx, meta
-        f.attrs["complete"] = False             # until the last chunk is in
-        # Contiguous, no fill value: every pose is written exactly once.
-        data = f.create_dataset("transients", shape=shape, dtype=np.float32)
+    with TransientsStreamWriter(out, header, n_bins=shape[2]) as writer:
         for sl, hist in _plan_chunks(scene, poses, plan, progress):
-            data[sl.start:sl.stop] = hist
+            writer.write(sl.start, hist)
             del hist
-        f.attrs["complete"] = True
-
-    return atomic_write_h5(out, fill), shape, plan.window
+    return Path(out), shape, plan.window
 
 
 @dataclass(frozen=True)
