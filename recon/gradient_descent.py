@@ -18,6 +18,15 @@ from .grid import Grid
 from .solver import SolverSettings
 
 
+BYTES_PER_VOXEL = solver.resources.GD_BYTES_PER_VOXEL
+
+
+def check_options(grid: Grid, preset: str | None = None, **options) -> None:
+    """Refuse, before any work, what :func:`solve` would refuse (ranges, lane limit, memory
+    estimate): the command line and ``sonarsim batch`` call this."""
+    solver.check_options(grid, False, preset, **options)
+
+
 def settings_for(preset: str | None = None, **overrides) -> SolverSettings:
     """Settings of a voxel run from a preset and explicit overrides."""
     return solver.settings_for(preset, network=False, **overrides)

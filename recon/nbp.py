@@ -13,6 +13,15 @@ from . import solver
 from .grid import Grid
 
 
+BYTES_PER_VOXEL = solver.resources.NBP_BYTES_PER_VOXEL
+
+
+def check_options(grid: Grid, preset: str | None = "cpu", **options) -> None:
+    """Refuse, before any work, what :func:`solve` would refuse (ranges, lane limit, memory
+    estimate): the command line and ``sonarsim batch`` call this."""
+    solver.check_options(grid, True, preset, **options)
+
+
 def settings_for(preset: str | None = "cpu", **overrides) -> solver.SolverSettings:
     return solver.settings_for(preset, network=True, **overrides)
 

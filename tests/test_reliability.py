@@ -869,3 +869,114 @@ def test_deconvolve_inr_memory_is_estimated_before_any_work(ds_file, tmp_path, c
     assert recon_main(["deconvolve", str(ds_file), "--out", str(out), "--max-memory", "64M",
                        "--width", "1024", "--hidden-layers", "8"]) == 2
     assert "INR deconvolution" in one_line_error(capsys) and not out.exists()
+
+
+# ----------------------------------------------------- solver: issue 23 (checkpoints, warm
+# ----------------------------------------------------- start chunking, solver option ranges)
+
+GD_SMALL = ["--bounds", *BOUNDS, "--shape", "6", "6", "6", "--iterations", "2", "--n-rays", "50",
+            "--bins-per-ping", "8", "--no-progress"]
+
+
+@pytest.mark.parametrize("method", ["gd", "nbp"])
+def test_checkpoint_never_replaces_the_dataset(ds_file, tmp_path, capsys, method):
+    """``--checkpoint`` naming the input dataset turned it into a zip (exit 0); now refused
+    in one line without --force, and with --force too (it is not a checkpoint); unchanged."""
+    before = ds_file.read_bytes()
+    for force in ([], ["--force"]):
+        rc = recon_main([method, str(ds_file), *GD_SMALL, "--out", str(tmp_path / "v.h5"),
+                         "--checkpoint", str(ds_file), *force])
+        assert rc == 2
+        line = one_line_error(capsys)
+        assert "--checkpoint" in line and ("exists" in line or "not a solver checkpoint" in line)
+    assert ds_file.read_bytes() == before
+    assert not (tmp_path / "v.h5").exists()
+
+
+def test_checkpoint_directory_refused_before_the_run(ds_file, tmp_path, capsys, monkeypatch):
+    from recon import solver
+    ran = []
+    monkeypatch.setattr(solver, "fit", lambda *a, **k: ran.append(1))
+    rc = recon_main(["gd", str(ds_file), *GD_SMALL, "--out", str(tmp_path / "v.h5"),
+                     "--checkpoint", str(tmp_path)])
+    assert rc == 2 and "is a directory" in one_line_error(capsys) and not ran
+
+
+def test_existing_checkpoint_replaced_only_with_force_or_resumed(ds_file, tmp_path, capsys):
+    ck = tmp_path / "ck.npz"
+    args = ["gd", str(ds_file), *GD_SMALL, "--checkpoint", str(ck)]
+    assert recon_main([*args, "--out", str(tmp_path / "a.h5")]) == 0
+    stamp = ck.read_bytes()
+    assert recon_main([*args, "--out", str(tmp_path / "b.h5")]) == 2
+    assert "exists" in one_line_error(capsys) and ck.read_bytes() == stamp
+    assert recon_main([*args, "--out", str(tmp_path / "c.h5"), "--resume"]) == 0
+    assert recon_main([*args, "--out", str(tmp_path / "d.h5"), "--force"]) == 0
+
+
+def test_checkpoint_with_a_negative_iteration_is_refused(ds_file, tmp_path, capsys):
+    ck = tmp_path / "ck.npz"
+    args = ["gd", str(ds_file), *GD_SMALL, "--checkpoint", str(ck)]
+    assert recon_main([*args, "--out", str(tmp_path / "a.h5")]) == 0
+    with np.load(ck) as z:
+        data = {k: z[k] for k in z.files}
+    data["iteration"] = np.array(-3, dtype=np.int64)
+    with open(ck, "wb") as fh:
+        np.savez(fh, **data)
+    rc = recon_main([*args, "--out", str(tmp_path / "b.h5"), "--resume"])
+    assert rc == 2 and "iteration -3" in one_line_error(capsys)
+    assert not (tmp_path / "b.h5").exists()
+
+
+def test_warm_start_renders_pings_per_chunk_at_a_time(point_ds, monkeypatch):
+    """The scaled-backprojection start built one operator for 4 × pings_per_iteration pings
+    whatever --pings-per-chunk said (300 pings per iteration: a segfault); it now renders
+    chunks like the iterations do."""
+    from recon import forward, gradient_descent
+    from recon.grid import Grid
+    sizes = []
+    real = forward.EllipsoidOperator
+
+    class Recording(real):
+        def __init__(self, grid, geometry, *args, **kwargs):
+            sizes.append(geometry.n_pings)
+            super().__init__(grid, geometry, *args, **kwargs)
+
+    monkeypatch.setattr(forward, "EllipsoidOperator", Recording)
+    grid = Grid([[-0.04, 0.04], [-0.05, 0.03], [0.06, 0.14]], (6, 6, 6))
+    gradient_descent.solve(point_ds, grid, iterations=1, pings_per_iteration=6,
+                           pings_per_chunk=2, n_rays=50, bins_per_ping=8, progress=False)
+    assert sizes and max(sizes) <= 2 and sum(sizes) == 24
+
+
+@pytest.mark.parametrize("method, option, value, message", [
+    ("nbp", "--mlp-width", "100000", "mlp_width"),
+    ("nbp", "--hash-levels", "100", "hash_levels"),
+    ("nbp", "--n-rays", "10000000", "sample points per pass"),
+    ("gd", "--n-rays", "100000000", "sample points per pass"),
+    ("gd", "--pings-per-iteration", "1000000", "recon gd needs"),
+])
+def test_solver_options_have_ranges_and_a_memory_estimate(ds_file, tmp_path, capsys, method,
+                                                          option, value, message):
+    """Each of these crashed, ran out of memory or ran for minutes into NaN; now one line
+    before any work."""
+    t0 = time.perf_counter()
+    rc = recon_main([method, str(ds_file), *GD_SMALL, "--out", str(tmp_path / "v.h5"),
+                     option, value, "--max-memory", "4G"])
+    assert rc == 2 and message in one_line_error(capsys)
+    assert time.perf_counter() - t0 < 20 and not (tmp_path / "v.h5").exists()
+
+
+def test_batch_and_library_share_the_solver_checks():
+    from recon import gradient_descent, nbp
+    from recon.grid import Grid
+    from sonarsim import limits
+    grid = Grid([[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.2]], (20, 20, 20))
+    nbp.check_options(grid, iterations=5)                  # a sane run passes
+    with pytest.raises(InputError, match="hash_levels"):
+        nbp.check_options(grid, hash_levels=100)
+    limits.set_max_memory("1G")
+    try:
+        with pytest.raises(InputError, match="recon gd needs"):
+            gradient_descent.check_options(grid, pings_per_iteration=2000)
+    finally:
+        limits.set_max_memory(None)

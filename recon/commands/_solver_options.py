@@ -74,6 +74,9 @@ def overrides(args) -> dict:
 
 
 def run(args, network: bool) -> int:
+    import contextlib
+
+    from sonarsim import outputs
     from sonarsim.errors import InputError
     from .. import solver
     if args.resume and not args.checkpoint:
@@ -83,12 +86,24 @@ def run(args, network: bool) -> int:
     kw = overrides(args)
     # Reject bad values before the (possibly large) dataset is read.
     settings = solver.settings_for(args.preset, network=network, **kw)
+    solver.resources.check_ranges(settings, network)
+    if args.checkpoint is not None:
+        # never replace an existing file without --force (a resumed checkpoint is expected
+        # to exist), and never a file that is not a checkpoint (the input dataset, say)
+        outputs.check_output(args.checkpoint, force=bool(getattr(args, "force", False)),
+                             option="--checkpoint", exists_ok=args.resume)
+        solver.check_checkpoint_path(args.checkpoint, args.resume)
     ds = _common.load_dataset(args)
-    grid = _common.grid_from_args(args, ds)
+    bytes_per_voxel = (solver.resources.NBP_BYTES_PER_VOXEL if network
+                       else solver.resources.GD_BYTES_PER_VOXEL)
+    grid = _common.grid_from_args(args, ds, bytes_per_voxel=bytes_per_voxel)
+    solver.check_resources(grid, settings, network)
     method = "nbp" if network else "gd"
-    vol = solver.solve(ds, grid, network=network, method=method, preset=args.preset,
-                       checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
-                       resume=args.resume, progress=not args.no_progress, **kw)
+    with (outputs.output_lock(args.checkpoint) if args.checkpoint is not None
+          else contextlib.nullcontext()):
+        vol = solver.solve(ds, grid, network=network, method=method, preset=args.preset,
+                           checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
+                           resume=args.resume, progress=not args.no_progress, **kw)
     what = "neural backprojection" if network else "gradient descent"
     tenths = vol.params["data_loss_by_tenth"]
     trend = (f"; data loss {tenths[0]:.4g} -> {tenths[-1]:.4g} (means of the first and last "

@@ -24,15 +24,18 @@ with another identity is refused with a one-line error.
 The package, along its seams: :mod:`.settings` (settings, help, presets), :mod:`.sampling`
 (targets, reachable bins, random draws), :mod:`.voxels` (the voxel scene), :mod:`.priors`
 (data term and priors), :mod:`.autocorrelation` (the matched-filter model),
-:mod:`.profiling`, :mod:`.checkpoints` and :mod:`.loop` (fit and solve).
+:mod:`.profiling`, :mod:`.resources` (ranges and the memory estimate), :mod:`.checkpoints`
+and :mod:`.loop` (fit and solve).
 """
 from ..adam import Adam  # noqa: F401  (re-exported: recon.solver.Adam)
 from .autocorrelation import convolve_rendered, expand_bins, pulse_autocorrelation  # noqa: F401
-from .checkpoints import dataset_digest, load_checkpoint, save_checkpoint  # noqa: F401
-from .loop import (fit, loss_by_tenth, make_scene, render_chunk,  # noqa: F401
-                   scaled_backprojection, solve)
+from .checkpoints import (check_checkpoint_path, dataset_digest, is_checkpoint,  # noqa: F401
+                          load_checkpoint, save_checkpoint)
+from .loop import (check_options, fit, loss_by_tenth, make_scene,  # noqa: F401
+                   render_chunk, scaled_backprojection, solve)
 from .priors import in_scene_units, loss_terms, random_directions  # noqa: F401
 from .profiling import PhaseTimer  # noqa: F401
+from .resources import check_resources, memory_estimate  # noqa: F401
 from .sampling import (Sampler, reachable_bins, rolled_frames, target_kind,  # noqa: F401
                        targets)
 from .settings import (CHECKPOINT_EVERY, CHOICES, HELP, NETWORK_DEFAULTS,  # noqa: F401

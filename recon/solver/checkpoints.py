@@ -2,8 +2,8 @@
 state, the loss history and the run's identity; resuming another run is refused."""
 from __future__ import annotations
 
-import hashlib
 import json
+import math
 import zipfile
 from pathlib import Path
 
@@ -11,18 +11,43 @@ import numpy as np
 
 from sonarsim.atomic import atomic_path
 from sonarsim.errors import FormatError, InputError
+from sonarsim.identity import dataset_digest  # noqa: F401  (the one dataset identity)
 
 from ..adam import Adam
 
+# Entries every checkpoint holds besides the parameters and Adam's moments.
+ENTRIES = ("iteration", "rng_state", "history", "identity", "iterations", "t")
 
-def dataset_digest(dataset) -> str:
-    """SHA-256 (hex, 16 chars) of a dataset's waveforms, poses, pulse and sampling."""
-    h = hashlib.sha256()
-    for a in (dataset.waveforms, dataset.tx, dataset.rx, dataset.pulse):
-        h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
-    h.update(repr((float(dataset.fs), float(dataset.sound_speed),
-                   int(dataset.start_sample))).encode())
-    return h.hexdigest()[:16]
+
+def is_checkpoint(path) -> bool:
+    """True if ``path`` is a file written by :func:`save_checkpoint` (an ``.npz`` zip with
+    the checkpoint's entries); False for anything else (a dataset, a volume, a text file)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = set(z.namelist())
+    except (OSError, zipfile.BadZipFile, ValueError):
+        return False
+    return all(f"{k}.npy" in names for k in ENTRIES)
+
+
+def check_checkpoint_path(path, resume: bool) -> Path:
+    """Refuse, before any work, a checkpoint path that is a directory, whose parent is not a
+    directory, or that names an existing file which is not a solver checkpoint when the run
+    would replace it (a dataset given by mistake must never be overwritten; a resumed run
+    reads the file first and refuses it if it is not a checkpoint). The command line also
+    asks for ``--force`` to replace an existing checkpoint."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"--checkpoint {p}: is a directory, expected a file name")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"--checkpoint {p}: {parent} is not a directory")
+            break
+    if p.exists() and not resume and not is_checkpoint(p):
+        raise InputError(f"--checkpoint {p}: exists and is not a solver checkpoint; refusing "
+                         "to replace it (choose another file name)")
+    return p
 
 
 def save_checkpoint(path, opt: Adam, rng, iteration, history, identity, settings):
@@ -38,7 +63,8 @@ def save_checkpoint(path, opt: Adam, rng, iteration, history, identity, settings
 
 def load_checkpoint(path, opt: Adam, rng, identity, settings):
     """Restore ``opt`` and ``rng`` from ``path``; returns (iteration, history). A file that
-    is not a complete checkpoint → FormatError; another run's checkpoint → InputError."""
+    is not a complete, consistent checkpoint → FormatError (every field is checked: types,
+    ranges, sizes, finite values); another run's checkpoint → InputError."""
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -47,9 +73,12 @@ def load_checkpoint(path, opt: Adam, rng, identity, settings):
         history = json.loads(str(data["history"]))
         rng_state = json.loads(str(data["rng_state"]))
         saved_iterations = int(data["iterations"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        adam_steps = int(data["t"])
+    except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile) as exc:
         raise FormatError(f"{path}: not a readable solver checkpoint "
                           f"({type(exc).__name__}: {str(exc)[:80]})") from None
+    _check_fields(path, data, saved, iteration, history, rng_state, saved_iterations,
+                  adam_steps)
     for key in ("dataset", "scene", "grid"):
         if saved.get(key) != identity[key]:
             raise InputError(f"{path}: checkpoint is of another run ({key} {saved.get(key)} "
@@ -66,5 +95,41 @@ def load_checkpoint(path, opt: Adam, rng, identity, settings):
         raise InputError(f"{path}: checkpoint is at iteration {iteration}, past --iterations "
                          f"{settings.iterations}")
     opt.load(data)
-    rng.bit_generator.state = rng_state
+    try:
+        rng.bit_generator.state = rng_state
+    except (TypeError, ValueError, KeyError) as exc:
+        raise FormatError(f"{path}: checkpoint's generator state is not valid "
+                          f"({type(exc).__name__})") from None
     return iteration, history
+
+
+def _check_fields(path, data, saved, iteration, history, rng_state, saved_iterations,
+                  adam_steps):
+    """Field-by-field validation of a loaded checkpoint (FormatError naming the field)."""
+    def bad(what):
+        raise FormatError(f"{path}: not a valid solver checkpoint ({what})")
+
+    if not isinstance(saved, dict) or not isinstance(saved.get("settings", {}), dict):
+        bad("identity is not a record")
+    if saved_iterations < 1:
+        bad(f"iterations {saved_iterations} < 1")
+    if not 0 <= iteration <= saved_iterations:
+        bad(f"iteration {iteration} outside 0..{saved_iterations}")
+    if adam_steps != iteration:
+        bad(f"optimiser step count {adam_steps} != iteration {iteration}")
+    if not isinstance(history, list) or len(history) != iteration or not all(
+            isinstance(h, dict) and all(isinstance(v, (int, float)) for v in h.values())
+            for h in history):
+        bad(f"loss history is not {iteration} records of numbers")
+    if any(isinstance(v, float) and not math.isfinite(v) for h in history for v in h.values()):
+        bad("loss history holds NaN or infinity")
+    if not isinstance(rng_state, dict) or "bit_generator" not in rng_state:
+        bad("generator state is not a record")
+    for name, array in data.items():
+        if name.startswith(("param/", "adam_m/", "adam_v/")):
+            if array.ndim != 1 or not np.issubdtype(array.dtype, np.floating):
+                bad(f"{name} is not a flat float array")
+            if not np.all(np.isfinite(array)):
+                bad(f"{name} holds NaN or infinity")
+            if name.startswith("adam_v/") and np.any(array < 0):
+                bad(f"{name} holds negative second moments")

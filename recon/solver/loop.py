@@ -17,9 +17,10 @@ from .._jit import jit
 from ..adam import Adam
 from ..grid import Grid
 from .autocorrelation import convolve_rendered, expand_bins, pulse_autocorrelation
-from .checkpoints import dataset_digest, load_checkpoint, save_checkpoint
+from .checkpoints import check_checkpoint_path, dataset_digest, load_checkpoint, save_checkpoint
 from .priors import in_scene_units, loss_terms, random_directions
 from .profiling import _no_timer
+from .resources import check_resources
 from .sampling import Sampler, reachable_bins, rolled_frames, target_kind, targets
 from .settings import CHECKPOINT_EVERY, SolverSettings, applies_to, settings_for
 from .voxels import VoxelScene
@@ -29,14 +30,18 @@ def render_chunk(scene, params, samples, settings: SolverSettings, eps: float, f
     """The forward model of one chunk (shared by both representations): (ŷ_re, ŷ_im, σ_re,
     σ_im) at every lane, through :func:`recon.forward.render`. ``field``: ``scene.bind(params)``
     if the caller already has it (the voxels' packed buffer is then made once per chunk)."""
-    return forward.render(scene.bind(params) if field is None else field, samples,
-                          lambertian_eps=eps if settings.lambertian else None,
+    field = scene.bind(params) if field is None else field
+    if hasattr(field, "occupancy_and_amplitude"):
+        return forward.render_occupancy(field, samples, occlusion=settings.occlusion_scale > 0)
+    return forward.render(field, samples, lambertian_eps=eps if settings.lambertian else None,
                           occlusion_scale=settings.occlusion_scale, with_sigma=True)
 
 
 def scaled_backprojection(dataset, grid, tgt, first, last, speeds, settings) -> np.ndarray:
     """Backprojection times the complex factor α that best fits the targets through the
-    linear model on a fixed batch of pings (α = ⟨A x, s⟩/‖A x‖²)."""
+    linear model on a fixed batch of 4 × ``pings_per_iteration`` pings
+    (α = ⟨A x, s⟩/‖A x‖²), rendered ``pings_per_chunk`` pings at a time like the iterations
+    (so it needs no more memory than one of them)."""
     from .. import backprojection
     x = backprojection.backproject(dataset, grid, progress=False)
     if settings.incoherent:
@@ -44,12 +49,19 @@ def scaled_backprojection(dataset, grid, tgt, first, last, speeds, settings) -> 
     rng = np.random.default_rng([settings.seed, 1])
     batch = dataclasses.replace(settings, pings_per_iteration=4 * settings.pings_per_iteration)
     pings, bins, _ = Sampler(tgt, first, last, batch, rng).draw()
-    op = forward.EllipsoidOperator(grid, forward.ping_geometry(dataset, pings, bins, speeds),
-                                   n_rays=settings.n_rays, beamwidth_deg=settings.beamwidth_deg)
-    ax = op.forward(x)
-    s = tgt[pings[:, None], bins]
-    denom = np.vdot(ax, ax)
-    alpha = np.vdot(ax, s) / denom if denom > 0 else 0.0
+    chunk = settings.pings_per_chunk or settings.pings_per_iteration
+    directions = forward.cone_directions(settings.n_rays, settings.beamwidth_deg)
+    num, denom = 0.0, 0.0
+    for c0 in range(0, len(pings), chunk):
+        sl = slice(c0, c0 + chunk)
+        op = forward.EllipsoidOperator(grid, forward.ping_geometry(dataset, pings[sl], bins[sl],
+                                                                   speeds),
+                                       directions=directions)
+        ax = op.forward(x).astype(np.complex128)
+        num += np.vdot(ax, tgt[pings[sl, None], bins[sl]])
+        denom += float(np.vdot(ax, ax).real)
+        del op
+    alpha = num / denom if denom > 0 else 0.0
     if settings.incoherent:
         alpha = abs(alpha)
     return (x * alpha).astype(np.complex64)
@@ -65,6 +77,8 @@ def fit(dataset, grid: Grid, settings: SolverSettings, scene, *, checkpoint=None
     if not isinstance(grid, Grid):
         raise InputError(f"grid: expected recon.grid.Grid, got {type(grid).__name__}")
     measurements.check_dataset(dataset)
+    if checkpoint is not None:
+        check_checkpoint_path(checkpoint, resume)
     threads = int(dr.thread_count())
     if settings.deterministic:
         dr.set_thread_count(1)
@@ -111,7 +125,7 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     info = {"voxel_scale": scale, "lr_absolute": lr0, "dataset_digest": identity["dataset"],
             "target_kind": target_kind(dataset, settings)}
     model = in_scene_units(settings, scale)
-    if x0 is not None and scene.kind == "network" and (settings.init == "bp"
+    if x0 is not None and scene.kind != "voxels" and (settings.init == "bp"
                                                         or settings.warm_start_iterations):
         params = scene.warm_start(params, x0, max(settings.warm_start_iterations, 1), rng,
                                   lr=settings.warm_start_lr)
@@ -139,7 +153,8 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     for it in range(start, settings.iterations):
         pings, bins, roll = sampler.draw()
         reg_on = it >= settings.reg_start
-        need_u = reg_on and (settings.smoothness > 0 or settings.phase > 0)
+        need_u = reg_on and (settings.smoothness > 0 or settings.phase > 0
+                             or settings.surface_tv > 0)
         n_chunks = -(-len(pings) // chunk)
         u_seeds = rng.integers(0, 2 ** 63, n_chunks) if need_u else None
         frames = rolled_frames(np.asarray(dataset.boresight)[pings], roll)
@@ -194,8 +209,9 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
 def make_scene(grid: Grid, settings: SolverSettings, network: bool):
     """The scene representation: :class:`recon.field.NetworkScene` or :class:`VoxelScene`."""
     if network:
-        from ..field import NetworkScene
-        return NetworkScene(grid, settings, incoherent=settings.incoherent)
+        from ..field import NetworkScene, OccupancyScene
+        kind = OccupancyScene if settings.occupancy else NetworkScene
+        return kind(grid, settings, incoherent=settings.incoherent)
     return VoxelScene(grid, settings, incoherent=settings.incoherent)
 
 
@@ -218,6 +234,7 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     ``params``. ``callback(iteration, record)`` gets each iteration's loss terms."""
     from sonarsim.dataset import Volume
     settings = settings_for(preset, network=network, **overrides)
+    check_resources(grid, settings, network)
     scene = make_scene(grid, settings, network)
     params, history, info = fit(dataset, grid, settings, scene, checkpoint=checkpoint,
                                 checkpoint_every=checkpoint_every, resume=resume,
@@ -235,3 +252,15 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     p.update(info)
     return Volume(volume=vol, bounds=np.asarray(out_grid.bounds, dtype=np.float64), method=method,
                   params=p)
+
+
+# Keywords of solve() that are not settings (checked elsewhere or not at all).
+RUN_KEYWORDS = ("checkpoint", "checkpoint_every", "resume", "progress", "callback",
+                "export_grid", "timer")
+
+
+def check_options(grid: Grid, network: bool, preset: str | None = None, **options) -> None:
+    """Everything a run with these options would refuse before its work starts: unknown
+    settings, ranges, the lane limit and the memory estimate (InputError, one line)."""
+    fields = {k: v for k, v in options.items() if k not in RUN_KEYWORDS}
+    check_resources(grid, settings_for(preset, network=network, **fields), network)

@@ -48,6 +48,15 @@ def loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings, 
             p_mag = dr.sqrt(p_re * p_re + p_im * p_im + 1e-20)
             terms["phase"] = weight * settings.phase * dr.sum(
                 valid * dr.abs(s_re / mag - p_re / p_mag)) / n_valid
+    cache = getattr(field, "cache", None)
+    if settings.surface_tv > 0 and cache:
+        # total variation of the occupancy (its surface area): |o(x) − o(x')| over a random
+        # step of √2·mean pitch; a solid costs one edge per line through it, a hollow shell
+        # two, a floater a pair: filled interiors and clean exteriors are cheapest
+        vbar = math.sqrt(2.0) * float(np.mean(h))
+        o_near, _, _ = field.occupancy_and_amplitude(samples.points + u_vec * (settings.smooth_delta * vbar))
+        jump = dr.abs(cache["occupancy"] - o_near)
+        terms["surface_tv"] = weight * settings.surface_tv * dr.sum(valid * jump) / n_valid
     if settings.tv > 0:
         P, J, K = samples.shape
         lane = dr.arange(m.UInt32, P * J * K)

@@ -9,9 +9,11 @@ import numpy as np
 
 from sonarsim.errors import InputError
 
+from ..field import NetworkSettings
+
 
 @dataclass
-class SolverSettings:
+class SolverSettings(NetworkSettings):
     """Settings of a neural-backprojection or gradient-descent run (see :data:`HELP`).
 
     The defaults are gradient descent's (voxels, scaled-backprojection start, learning rate
@@ -46,36 +48,29 @@ class SolverSettings:
     init: str = "bp"
     ray_jitter: bool = True
     deterministic: bool = True     # a seed fixes the run (issue: reproducible by default)
-    # network (NBP only)
-    hash_levels: int = 14
-    hash_features: int = 2
-    hash_log2_size: int = 15
-    hash_base_resolution: int = 16
-    hash_level_scale: float = 1.5
-    mlp_width: int = 128
-    mlp_hidden: int = 3
+    # network (NBP only; the hash grid and MLP fields come from NetworkSettings)
+    occupancy: bool = False
+    surface_tv: float = 0.0
+    solid_floor: bool = True
     warm_start_iterations: int = 0
     warm_start_lr: float = 1e-2
     autocorrelation_taps: int = 0
 
     def validate(self):
-        for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays", "hash_levels",
-                     "hash_features", "hash_base_resolution", "mlp_width", "mlp_hidden"):
+        for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
         for name in ("pings_per_chunk", "warm_start_iterations", "reg_start", "autocorrelation_taps"):
             if int(getattr(self, name)) < 0:
                 raise InputError(f"{name}: must be >= 0, got {getattr(self, name)}")
-        if not 8 <= self.hash_log2_size <= 26:
-            raise InputError(f"hash_log2_size: must be in [8, 26], got {self.hash_log2_size}")
-        if not self.hash_level_scale >= 1:
-            raise InputError(f"hash_level_scale: must be >= 1, got {self.hash_level_scale}")
+        self.validate_network()
         if self.lr_final is not None and not self.lr_final > 0:
             raise InputError(f"lr_final: must be positive, got {self.lr_final}")
         for name in ("lr", "scale_factor", "warm_start_lr"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
-        for name in ("sparsity", "smoothness", "phase", "tv", "occlusion_scale", "adam_epsilon",
+        for name in ("sparsity", "smoothness", "phase", "tv", "surface_tv", "occlusion_scale",
+                     "adam_epsilon",
                      "sampling_uniformity", "init_scale", "smooth_delta"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -92,7 +87,7 @@ CHECKPOINT_EVERY = 100
 
 # Fields that only the network reads (neither an option of recon gd nor a parameter of its
 # volumes).
-NETWORK_ONLY = ("hash_", "mlp_", "warm_start")
+NETWORK_ONLY = ("hash_", "mlp_", "warm_start", "occupancy", "surface_tv", "solid_floor")
 
 
 def applies_to(name: str, network: bool) -> bool:
@@ -143,6 +138,13 @@ HELP = {
     "autocorrelation_taps": "model the matched filter: convolve the rendered impulse response with "
                             "the pulse's autocorrelation over ±taps samples (0 = off; for "
                             "matched-filtered targets)",
+    "occupancy": "NBP (experimental): the network outputs an occupancy o ∈ [0, 1] and a "
+                 "complex surface amplitude a; the first occupied point along a ray scatters, "
+                 "what lies behind it is hidden, and the exported volume is o",
+    "surface_tv": "occupancy: weight of the total variation of o over a random step (its "
+                  "surface area; favours filled interiors and no floaters)",
+    "solid_floor": "occupancy: o = 1 below the grid's lowest voxel plane (the rig's ground), "
+                   "so the ground's echo is o's rise there and no slab of voxels",
     "warm_start_lr": "NBP: Adam learning rate of the warm start (absolute; the fit is to the "
                      "backprojection normalised to max 1)",
     "warm_start_iterations": "NBP: first fit the network to the scaled backprojection for this many "
