@@ -8,8 +8,10 @@ project (HDF5 files, pictures, meshes, pose files, checkpoints) goes through
 * **a free-space check** before anything is written, when the writer knows how much it will
   write (``size``; :func:`check_free_space`);
 * **one-line errors**: an ``OSError`` while writing (``ENOSPC`` on a full disk, a read-only
-  file system, a permission) becomes a :class:`~sonarsim.errors.WriteError` naming the final
-  path, and the temporary file is removed (:func:`write_error`);
+  file system, a permission), or a library's own error that says the disk is full (HDF5,
+  OpenEXR), becomes a :class:`~sonarsim.errors.WriteError` naming the final path, and the
+  temporary file is removed with any file the writer derived from its name
+  (:func:`write_error`);
 * **no leftovers of killed runs**: every write holds the target's output lock
   (:func:`sonarsim.outputs.output_lock`, released by the kernel when a process dies), so
   the next write of the same target, holding that lock, knows that any temporary file
@@ -67,8 +69,20 @@ def _errno_of(exc: BaseException) -> int | None:
     code = getattr(exc, "errno", None)
     if code:
         return code
-    found = _H5_ERRNO.search(str(exc))
-    return int(found.group(1)) if found else None
+    text = str(exc)
+    found = _H5_ERRNO.search(text)
+    if found:
+        return int(found.group(1))
+    # Libraries that wrap the C library's error in their own exception (OpenEXR's
+    # RuntimeError "... No space left on device.") keep only its text.
+    return next((c for c in DISK_FULL if os.strerror(c) in text), None)
+
+
+def is_write_failure(exc: BaseException) -> bool:
+    """Whether ``exc``, raised while writing, is the file system's refusal: an ``OSError``,
+    or any error whose chain carries a disk-full errno (in HDF5's or another library's
+    message)."""
+    return isinstance(exc, OSError) or any(_errno_of(e) in DISK_FULL for e in _chain(exc))
 
 
 def _chain(exc: BaseException | None) -> Iterator[BaseException]:
@@ -123,9 +137,17 @@ def check_free_space(path: str | os.PathLike, nbytes: float, what: str = "") -> 
 
 
 def _temp_patterns(final: Path) -> list[str]:
+    # A writer may add to the temporary name it is given (pyevtk appends ".vti"): "*".
     stem = glob.escape(str(final.parent / f".{final.name}."))
     suffixes = {".tmp", final.suffix} - {""}
-    return [f"{stem}{'?' * 8}{glob.escape(s)}" for s in sorted(suffixes)]
+    return [f"{stem}{'?' * 8}{glob.escape(s)}*" for s in sorted(suffixes)]
+
+
+def _remove_temp(tmp: Path) -> None:
+    """Remove ``tmp`` and the files a writer derived from its name (``tmp`` + a suffix)."""
+    for name in (str(tmp), *glob.glob(glob.escape(str(tmp)) + ".*")):
+        with contextlib.suppress(FileNotFoundError, IsADirectoryError):
+            os.unlink(name)
 
 
 def remove_stale_temps(path: str | os.PathLike) -> int:
@@ -185,9 +207,10 @@ def atomic_path(path: str | os.PathLike, *, keep_suffix: bool = True,
                 os.chmod(tmp, _default_mode())  # mkstemp creates 0600
                 fsync_path(tmp)
                 os.replace(tmp, final)
-            except OSError as exc:
+            except Exception as exc:
+                if not is_write_failure(exc):
+                    raise
                 raise write_error(final, exc) from None
             fsync_path(final.parent)
         finally:
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
+            _remove_temp(tmp)

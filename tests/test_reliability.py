@@ -715,7 +715,22 @@ def test_a_full_disk_is_one_line_before_writing(ds_file, tmp_path, capsys, monke
     out = tmp_path / "v.h5"
     assert _bp(ds_file, out) == 2
     line = one_line_error(capsys)
-    assert f"cannot write {out}: needs about" in line and "are free" in line
+    assert f"cannot write {out}: the volume needs about" in line and "are free" in line
+    assert list(tmp_path.iterdir()) == [ds_file]
+
+
+def test_a_fit_whose_volume_will_not_fit_on_the_disk_is_refused_before_any_work(
+        ds_file, tmp_path, capsys, monkeypatch):
+    """The volume's size is known from the grid: a gradient-descent fit is refused before its
+    first iteration instead of failing at the end (a 4 MB tmpfs as --out)."""
+    from recon import solver
+    from sonarsim import atomic
+    monkeypatch.setattr(atomic, "free_bytes", lambda path: 1000)
+    monkeypatch.setattr(solver, "solve", lambda *a, **k: pytest.fail("the fit ran"))
+    out = tmp_path / "v.h5"
+    assert recon_main(["gd", str(ds_file), "--out", str(out), "--shape", "5", "5", "5",
+                       "--iterations", "2", "--no-progress"]) == 2
+    assert f"cannot write {out}: the volume needs about" in one_line_error(capsys)
     assert list(tmp_path.iterdir()) == [ds_file]
 
 
@@ -751,6 +766,36 @@ def test_a_killed_writers_temporary_file_is_removed_by_the_next_run(ds_file, tmp
     assert _bp(ds_file, out) == 0
     assert not leftover.exists() and other.exists()
     assert Volume.read(out).shape == (5, 5, 5)
+
+
+def test_a_librarys_disk_full_error_is_one_line_and_leaves_nothing(tmp_path):
+    """OpenEXR says a disk is full as RuntimeError('... No space left on device.') and pyevtk
+    writes to the name it is given + '.vti' (reproduced on a 4 MB tmpfs: `recon export --exr`
+    was a traceback, `--vti` left .v.vti.XXXXXXXX.vti.vti behind)."""
+    from sonarsim.atomic import atomic_path
+    from sonarsim.errors import WriteError
+    out = tmp_path / "v.vti"
+    with pytest.raises(WriteError) as info:
+        with atomic_path(out) as tmp:
+            Path(f"{tmp}.vti").write_bytes(b"\0" * 4096)
+            raise RuntimeError(f'Failed to write pixel data to image file "{tmp}". '
+                               "No space left on device.")
+    assert str(info.value) == (f"cannot write {out}: no space left on the device (disk full); "
+                               "free some space or write elsewhere")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError, match="a bug"):     # not a write failure: unchanged
+        with atomic_path(out):
+            raise RuntimeError("a bug")
+
+
+def test_a_killed_writers_derived_temporary_file_is_removed_by_the_next_run(tmp_path):
+    from sonarsim.atomic import atomic_path
+    out = tmp_path / "v.vti"
+    leftover = tmp_path / ".v.vti.k1ll3d_x.vti.vti"    # pyevtk's name for atomic_path's temp
+    leftover.write_bytes(b"\0" * 4096)
+    with atomic_path(out) as tmp:
+        tmp.write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.vti"]
 
 
 # ------------------------------------------- firstday-b: broken pipes and Ctrl-C (issue 23.6)

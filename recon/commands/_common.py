@@ -17,6 +17,10 @@ from ..checks import BYTES_PER_VOXEL, check_grid, check_signal
 from ..grid import DEFAULT_VOXEL_SIZE, Grid, box_bounds, grid_from_options, scene_box_of
 
 
+#: Bytes a voxel takes in a volume file (complex64).
+VOLUME_BYTES_PER_VOXEL = 8
+
+
 def add_dataset_and_grid(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) written by sonarsim")
     parser.add_argument("--out", type=Path, required=True, help="output volume (.h5)")
@@ -77,13 +81,20 @@ def load_dataset(args):
     return ds if idx is None else ds.select(idx)
 
 
-def grid_from_args(args, dataset, *, bytes_per_voxel: float = BYTES_PER_VOXEL) -> Grid:
+def grid_from_args(args, dataset, *, bytes_per_voxel: float = BYTES_PER_VOXEL,
+                   volume_out: bool = True) -> Grid:
     """The grid of ``--bounds``/``--shape``/``--voxel-size`` (:func:`recon.grid.grid_from_options`
     over the dataset's scene box), checked against the memory limit and against the dataset's
-    recorded window (:func:`recon.checks.check_grid`)."""
+    recorded window (:func:`recon.checks.check_grid`); with ``volume_out`` (``--out`` is the
+    volume), ``--out``'s file system must hold the volume (complex64, 8 bytes a voxel) before
+    any work, so that a long fit does not end on a full disk."""
     grid = grid_from_options(box_bounds(scene_box_of(dataset)), args.bounds,
                              args.shape, args.voxel_size)
-    return check_grid(dataset, grid, bytes_per_voxel)
+    grid = check_grid(dataset, grid, bytes_per_voxel)
+    if volume_out and getattr(args, "out", None) is not None:
+        from sonarsim.atomic import check_free_space
+        check_free_space(args.out, VOLUME_BYTES_PER_VOXEL * grid.size, "the volume")
+    return grid
 
 
 def write_volume(vol, args, summary: str) -> int:
