@@ -38,31 +38,23 @@ fit = true
 ABOVE_GROUND = [[-0.2, 0.2], [-0.2, 0.2], [0.005, 0.3]]   # score the object, not the ground
 
 
-def comparison_figure(volumes: dict, scores: dict, bounds, path: Path) -> Path:
-    """Top (z) and side (y) maximum-intensity projections per method on one colour scale
-    (|σ| normalised to each volume's maximum), titled with the scores."""
-    from matplotlib.figure import Figure
+def comparison_figure(volumes: dict, scores: dict, bounds, gt, path: Path) -> Path:
+    """The ground truth (voxel centres inside the mesh) and each method's |σ| (normalised to
+    its maximum) above the ground: top and side maximum-intensity projections on one colour
+    scale, each column titled with its scores."""
+    from recon.containment import inside_mesh_lattice
+    from sonarsim.figures import mip_comparison
 
-    from sonarsim.figures import save_figure
-    fig = Figure(figsize=(4.2 * len(volumes), 7.5), layout="constrained")
-    axs = fig.subplots(2, len(volumes), squeeze=False)
-    for col, (name, volume) in enumerate(volumes.items()):
-        mag = export.normalized_magnitude(volume)
-        for row, axis in enumerate((2, 1)):
-            ax = axs[row, col]
-            u, v = export.mip_axes(axis)
-            extent = (*export.pixel_extent(bounds, mag.shape, u),
-                      *export.pixel_extent(bounds, mag.shape, v))
-            image = ax.imshow(export.mip(mag, axis), origin="lower", cmap="inferno", vmin=0,
-                              vmax=1, extent=extent)
-            ax.set_xlabel(f"{'xyz'[u]} [m]")
-            ax.set_ylabel(f"{'xyz'[v]} [m]")
-            ax.set_title(f"{name}: {'top view (MIP along z)' if axis == 2 else 'side view (MIP along y)'}"
-                         + (f"\nIoU {scores[name]['iou']:.3f}, Chamfer "
-                            f"{1e3 * scores[name]['chamfer']:.1f} mm" if row == 0 else ""),
-                         fontsize=9)
-    fig.colorbar(image, ax=axs, label="|σ| / max |σ|", shrink=0.8)
-    return save_figure(fig, path)
+    box = np.asarray(ABOVE_GROUND)
+    columns = []
+    for name, volume in volumes.items():
+        cropped, sub = export.crop_volume(volume, bounds, box)
+        columns.append((f"{name}\nIoU {scores[name]['iou']:.3f}, Chamfer "
+                        f"{1e3 * scores[name]['chamfer']:.1f} mm",
+                        export.normalized_magnitude(cropped), sub))
+    inside = inside_mesh_lattice(gt, export.voxel_axes(sub, cropped.shape))
+    columns.insert(0, ("ground truth", inside.astype(np.float32), sub))
+    return mip_comparison(columns, path, colorbar_label="|σ| / max |σ| (ground truth: inside = 1)")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -116,7 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{name:4s} IoU {s['iou']:.3f}  Chamfer {1e3 * s['chamfer']:.1f} mm  "
               f"({s['seconds']:.1f} s)")
     (args.out / "scores.json").write_text(json.dumps(scores, indent=1))
-    figure = comparison_figure(volumes, scores, grid.bounds, args.out / "comparison.png")
+    figure = comparison_figure(volumes, scores, grid.bounds, gt, args.out / "comparison.png")
     print(f"figure: {figure}")
     return {"dataset": ds, "volumes": volumes, "scores": scores, "figure": figure,
             "grid": grid, "finite": all(np.isfinite(v).all() for v in volumes.values())}

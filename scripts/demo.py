@@ -1,51 +1,173 @@
-"""`make demo`: mesh scene -> transients -> sonar dataset -> reconstruction -> pictures.
+"""`make demo`: mesh scene -> transients -> sonar dataset -> four reconstructions -> scores.
 
-Runs the real command-line tools in order on a small problem (a few hundred poses of a
-shipped scene) and, when the real AirSAS scan is beside the project, imports it and
-backprojects it too. Everything lands in one output folder with a SUMMARY.txt.
+Runs the real command-line tools in order on a small problem and writes everything into one
+folder, with SUMMARY.txt holding each step's command, its result lines and its time:
+
+1. the per-bounce transients of a shipped scene (``tabletop``: a cube with a sphere on it, a
+   cylinder and a dark sphere on a ground plate) and their pictures;
+2. an AirSAS-style dataset of that scene (20 kHz LFM, 20 dB total SNR) and its pictures;
+3. the paper's comparison (Reed et al. 2023): coherent backprojection (BP) of the
+   matched-filtered data; the pulse deconvolved (Wiener); gradient descent on complex voxels
+   (GD) and neural backprojection (NBP) both fitted to the deconvolved data through the
+   ellipsoidal forward model; every volume scored against the scene's mesh above the ground
+   (IoU, Chamfer), one comparison figure, and a verdict computed from the scores;
+4. the real AirSAS scan shipped with sonarsim (docs/data.md): its raw LabVIEW excerpt imported,
+   the full scan imaged on the turntable plane with matched-filtered and deconvolved data.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import io
+import json
 import sys
 import time
 from pathlib import Path
 
 from recon.cli import main as recon_main
+from sonarsim import data
 from sonarsim.cli import main as sonarsim_main
 
-# The ground-truth meshes have no ground plane; evaluate above it (docs/evaluation.md).
+# The ground truth is the scene's objects; the ground plate is not scored (docs/evaluation.md).
 ABOVE_GROUND = ["--crop", "-0.2", "0.2", "-0.2", "0.2", "0.005", "0.3"]
-SHARED_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "airsas_real"
-
+SHAPE = ["--shape", "64", "64", "48"]
+REAL_PLANE = ["--bounds", "-0.3", "0.3", "-0.3", "0.3", "0", "0", "--shape", "200", "200", "1"]
+METHODS = {"bp": "BP (matched filter)", "gd": "GD (deconvolved)", "nbp": "NBP (deconvolved)"}
+# NBP at demo size: the 'cpu' preset with half its rays, half its range bins per ping and a
+# third of its warm start. Measured on this demo's dataset (tabletop, 720 poses; 2 shared cores):
+# IoU 0.272 / Chamfer 36 mm in 33 CPU-s, against 0.305 / 33 mm in 129 CPU-s for the preset's
+# sampling with 100 warm-start steps; BP 0.133 / 30 mm, GD 0.164 / 38 mm.
+NBP_DEMO = ["--n-rays", "300", "--bins-per-ping", "32", "--warm-start-iterations", "100"]
+QUICK_SHAPE = ["--shape", "24", "24", "18"]
+QUICK_NBP = ["--hash-levels", "4", "--n-rays", "100", "--bins-per-ping", "32",
+             "--warm-start-iterations", "5"]
 
 # Commands that refuse to replace an existing output without --force (a demo re-run
 # replaces its own outputs).
-REPLACES = {"render", "simulate", "import-airsas", "backproject", "gd", "export", "compare"}
+REPLACES = {"render", "simulate", "import-airsas", "backproject", "gd", "nbp", "export",
+            "deconvolve"}
 
 
-def step(log: list[str], title: str, tool, argv: list[str]) -> str:
-    """Run one CLI call, echo it, keep its stdout for the summary; stop on failure."""
-    if argv[0] in REPLACES:
-        argv = [*argv, "--force"]
-    print(f"\n== {title}\n$ {tool.__module__.split('.')[0]} {' '.join(argv)}", flush=True)
-    out = io.StringIO()
-    t0 = time.perf_counter()
-    with contextlib.redirect_stdout(out):
-        code = tool(argv)
-    text = out.getvalue()
-    print(text, end="")
-    if code:
-        raise SystemExit(f"demo step failed ({title}), exit status {code}")
-    log.append(f"## {title}  ({time.perf_counter() - t0:.1f} s)\n"
-               f"$ {tool.__module__.split('.')[0]} {' '.join(argv)}\n{text}")
-    return text
+class Demo:
+    """Runs CLI steps, echoes them, and keeps each step's result lines for SUMMARY.txt."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.log: list[str] = []
+        self.seconds: dict[str, float] = {}
+
+    def step(self, title: str, tool, argv: list[str], key: str | None = None,
+             summarize=None) -> str:
+        """Run one CLI call (stop the demo if it fails); return what it printed on stdout.
+        ``summarize(text) -> str``: what to show and log instead of the raw output."""
+        if argv[0] in REPLACES:
+            argv = [*argv, "--force"]
+        prog = tool.__module__.split(".")[0]
+        print(f"\n== {title}\n$ {prog} {' '.join(argv)}", flush=True)
+        out = io.StringIO()
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(out):
+            code = tool(argv)
+        seconds = time.perf_counter() - t0
+        text = out.getvalue()
+        if code:
+            print(text, end="")
+            raise SystemExit(f"demo step failed ({title}), exit status {code}")
+        shown = summarize(text) if summarize else text
+        print(shown, end="")
+        if key:
+            self.seconds[key] = seconds
+        shown = shown if len(shown) < 4000 else shown[:4000] + "...\n"
+        self.log.append(f"## {title}  ({seconds:.1f} s)\n$ {prog} {' '.join(argv)}\n{shown}")
+        return text
+
+    def path(self, name: str) -> str:
+        return str(self.out / name)
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
+def score_line(text: str) -> str:
+    """The headline of ``recon evaluate --json``: IoU, Chamfer, normals, which ground truth."""
+    r = json.loads(text)
+    return (f"IoU {r['iou']:.3f}, Chamfer {1e3 * r['chamfer_m']:.1f} mm, normal error "
+            f"{r['normal_error_deg']:.0f}° at threshold {r['threshold']:g} (best IoU "
+            f"{r['best_iou']:.3f} at {r['best_iou_threshold']:g}); ground truth: "
+            f"{r['gt']['kind']} {Path(r['gt']['source']).name}, {r['gt']['frame']}\n")
+
+
+def comparison_figure(out: Path, scores: dict, scene: str) -> Path:
+    """``compare.png``: the ground truth (the scene's mesh voxelised on the reconstruction
+    grid: voxel centres inside it) and each method's |σ| above the ground, top and side
+    views on one colour scale; each column titled with its scores, the best marked ★."""
+    import numpy as np
+
+    from recon import export
+    from recon.containment import inside_mesh_lattice
+    from recon.metrics import load_gt_mesh
+    from sonarsim.dataset import Volume
+    from sonarsim.figures import mip_comparison
+
+    box = np.reshape([float(v) for v in ABOVE_GROUND[1:]], (3, 2))
+    best_iou = max(METHODS, key=lambda k: scores[k]["iou"])
+    best_ch = min(METHODS, key=lambda k: scores[k]["chamfer_m"])
+    columns = []
+    for key, name in METHODS.items():
+        vol = Volume.read(out / f"{key}.h5")
+        volume, bounds = export.crop_volume(vol.volume, vol.bounds, box)
+        s = scores[key]
+        columns.append((f"{name}\nIoU {s['iou']:.3f}{' ★' if key == best_iou else ''}, Chamfer "
+                        f"{1e3 * s['chamfer_m']:.1f} mm{' ★' if key == best_ch else ''}",
+                        export.normalized_magnitude(volume), bounds))
+    bounds = columns[0][2]
+    gt = inside_mesh_lattice(load_gt_mesh(out / "dataset.h5"),
+                             export.voxel_axes(bounds, columns[0][1].shape))
+    columns.insert(0, ("ground truth\n(scene mesh, voxelised)", gt.astype(np.float32), bounds))
+    return mip_comparison(
+        columns, out / "compare.png",
+        colorbar_label="|σ| / max |σ| per volume (ground truth: inside = 1)",
+        suptitle=f"{scene}: the objects above the ground, scored at threshold "
+                 f"{scores['bp']['threshold']:g} (★ best)")
+
+
+def verdict(scores: dict, seconds: dict) -> str:
+    """The comparison table and which method wins, from the measured scores."""
+    rows = [f"{'method':22s} {'IoU':>6s} {'Chamfer':>9s} {'time':>7s}"]
+    for key, name in METHODS.items():
+        s = scores[key]
+        rows.append(f"{name:22s} {s['iou']:6.3f} {1e3 * s['chamfer_m']:6.1f} mm "
+                    f"{seconds.get(key, float('nan')):6.1f} s")
+    best_iou = max(METHODS, key=lambda k: scores[k]["iou"])
+    best_ch = min(METHODS, key=lambda k: scores[k]["chamfer_m"])
+    bp, nbp = scores["bp"], scores["nbp"]
+    lines = ["", *rows, ""]
+    lines.append(f"Best IoU: {METHODS[best_iou]}; best Chamfer: {METHODS[best_ch]}.")
+    if best_iou == "nbp" and best_ch == "nbp":
+        lines.append(
+            f"NBP wins on both: IoU {nbp['iou']:.3f} vs {bp['iou']:.3f} for BP, Chamfer "
+            f"{1e3 * nbp['chamfer_m']:.1f} vs {1e3 * bp['chamfer_m']:.1f} mm. Why: BP spreads each "
+            "echo over its whole ellipsoid and keeps the pulse's range sidelobes, so its "
+            "thresholded volume is fat and blurred; NBP first removes the pulse "
+            "(deconvolution), then fits a scene whose simulated echoes match the data through "
+            "the forward model; the network (hash grid + MLP) keeps the fitted scene smooth "
+            "where free voxels (GD) also fit the noise.")
+    else:
+        lines.append(
+            f"NBP does not win everything at this small size: IoU {nbp['iou']:.3f} (BP "
+            f"{bp['iou']:.3f}), Chamfer {1e3 * nbp['chamfer_m']:.1f} mm (BP "
+            f"{1e3 * bp['chamfer_m']:.1f} mm). The demo's scan is small and its solvers run a "
+            "few hundred steps. In the paper's Table 2 (averaged over its simulated scenes) NBP "
+            "leads on every metric, and on our full "
+            "simulated bunny scan NBP fitted to deconvolved data scores IoU 0.69 against 0.31 "
+            "for BP (docs/reconstruction.md, 'The paper's pipeline').")
+    if scores["gd"]["iou"] < bp["iou"]:
+        lines.append(
+            "GD scores below BP: voxels are free per location, so with few pings the fit also "
+            "explains noise and ellipsoid overlaps (docs/reconstruction.md); the network's "
+            "smoothness is what GD lacks.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("demo_out"))
     parser.add_argument("--scene", default="tabletop", help="shipped scene name or TOML file")
     parser.add_argument("--poses", default="cylindrical:120:6",
@@ -55,64 +177,92 @@ def main() -> int:
     parser.add_argument("--mc-snr-db", type=float, default=30.0,
                         help="Monte-Carlo SNR after matched filtering of the simulated "
                              "dataset (default 30 dB, simulate's default)")
-    args = parser.parse_args()
+    parser.add_argument("--gd-iterations", type=int, default=300)
+    parser.add_argument("--nbp-iterations", type=int, default=300)
+    parser.add_argument("--quick", action="store_true",
+                        help="every step at a tiny size (seconds; the test suite's run)")
+    args = parser.parse_args(argv)
+    shape, real_plane, nbp_options = SHAPE, REAL_PLANE, NBP_DEMO
+    fidelity = ["--mc-snr-db", str(args.mc_snr_db)]
+    if args.quick:
+        args.poses, args.paths_per_pose = "cylindrical:16:2", 300
+        args.gd_iterations = args.nbp_iterations = 5
+        shape, real_plane = QUICK_SHAPE, [*REAL_PLANE[:8], "40", "40", "1"]
+        nbp_options, fidelity = QUICK_NBP, ["--surface-spacing", "0.02"]
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    log: list[str] = []
+    demo = Demo(out)
+    p = demo.path
     t_start = time.perf_counter()
     common = [args.scene, "--poses", args.poses, "--seed", "1"]
 
-    step(log, "render per-bounce transients", sonarsim_main,
-         ["render", *common, "--paths-per-pose", str(args.paths_per_pose),
-          "--out", str(out / "transients.h5")])
-    step(log, "picture of the transients", sonarsim_main,
-         ["plot", str(out / "transients.h5"), "--out", str(out / "transients")])
-    step(log, "simulate an AirSAS-style dataset (20 kHz LFM, 20 dB total SNR, Monte-Carlo "
-              f"SNR {args.mc_snr_db:g} dB)", sonarsim_main,
-         ["simulate", *common, "--pulse", "lfm-20k", "--snr-db", "20", "--restart",
-          "--mc-snr-db", str(args.mc_snr_db),
-          "--out", str(out / "dataset.h5")])
-    step(log, "dataset summary", sonarsim_main, ["info", str(out / "dataset.h5")])
-    step(log, "echo images, pulse, trajectory", sonarsim_main,
-         ["plot", str(out / "dataset.h5"), "--out", str(out / "dataset")])
-    step(log, "coherent backprojection", recon_main,
-         ["backproject", str(out / "dataset.h5"), "--shape", "64", "64", "48",
-          "--out", str(out / "bp.h5")])
-    step(log, "gradient descent on complex voxels", recon_main,
-         ["gd", str(out / "dataset.h5"), "--shape", "64", "64", "48", "--iterations", "300",
-          "--seed", "1", "--out", str(out / "gd.h5")])
-    for name in ("bp", "gd"):
-        step(log, f"export {name}: MIPs and marching-cubes mesh", recon_main,
-             ["export", str(out / f"{name}.h5"), "--mip", str(out / f"{name}_mip.png"),
-              "--exr", str(out / f"{name}_mip.exr"), "--mesh", str(out / f"{name}.ply")])
-        step(log, f"evaluate {name} against the ground truth", recon_main,
-             ["evaluate", str(out / f"{name}.h5"), "--gt", str(out / "dataset.h5"), *ABOVE_GROUND])
-    step(log, "side-by-side comparison", recon_main,
-         ["compare", str(out / "bp.h5"), str(out / "gd.h5"), "--gt", str(out / "dataset.h5"),
-          *ABOVE_GROUND, "--out", str(out / "compare.png")])
+    # 1-2. transients and dataset
+    demo.step("render per-bounce transients", sonarsim_main,
+              ["render", *common, "--paths-per-pose", str(args.paths_per_pose),
+               "--out", p("transients.h5")])
+    demo.step("pictures of the transients (one echo image per bounce, energy shares)",
+              sonarsim_main, ["plot", p("transients.h5"), "--out", p("transients")])
+    fidelity_text = ("20 mm surface strata" if args.quick
+                     else f"Monte-Carlo SNR {args.mc_snr_db:g} dB")
+    demo.step("simulate an AirSAS-style dataset (20 kHz LFM, 20 dB total SNR, "
+              f"{fidelity_text})", sonarsim_main,
+              ["simulate", *common, "--pulse", "lfm-20k", "--snr-db", "20", "--restart",
+               *fidelity, "--out", p("dataset.h5")])
+    demo.step("dataset summary", sonarsim_main, ["info", p("dataset.h5")])
+    demo.step("echo images, pulse, trajectory", sonarsim_main,
+              ["plot", p("dataset.h5"), "--out", p("dataset")])
 
-    if SHARED_SCAN.is_dir():
-        scan, bg = SHARED_SCAN / "small_features_cutout_5k", SHARED_SCAN / "bg_5k"
-        step(log, "import the real AirSAS scan (5 kHz LFM, background subtracted)",
-             sonarsim_main, ["import-airsas", str(scan), "--background", str(bg),
-                             "--out", str(out / "airsas_real.h5")])
-        step(log, "backproject the real scan on a 2-D grid at z = 0", recon_main,
-             ["backproject", str(out / "airsas_real.h5"), "--bounds", "-0.3", "0.3", "-0.3",
-              "0.3", "0", "0", "--shape", "200", "200", "1", "--out", str(out / "airsas_bp.h5")])
-        step(log, "export the real-scan image", recon_main,
-             ["export", str(out / "airsas_bp.h5"), "--mip", str(out / "airsas_bp.png")])
-        # A one-height scan has no elevation resolution; GD fits a thin slab around z = 0
-        # (a single voxel layer is met by too few of the forward model's rays).
-        step(log, "gradient descent on the real scan (thin slab around z = 0)", recon_main,
-             ["gd", str(out / "airsas_real.h5"), "--bounds", "-0.3", "0.3", "-0.3", "0.3",
-              "-0.02", "0.02", "--shape", "150", "150", "5", "--iterations", "200",
-              "--seed", "1", "--out", str(out / "airsas_gd.h5")])
-        step(log, "export the real-scan GD image", recon_main,
-             ["export", str(out / "airsas_gd.h5"), "--mip", str(out / "airsas_gd.png")])
+    # 3. the paper's comparison
+    demo.step("coherent backprojection of the matched-filtered data", recon_main,
+              ["backproject", p("dataset.h5"), *shape, "--out", p("bp.h5")], key="bp")
+    demo.step("pulse deconvolution (Wiener)", recon_main,
+              ["deconvolve", p("dataset.h5"), "--method", "wiener", "--out", p("dataset_pd.h5")])
+    demo.step("gradient descent on complex voxels, deconvolved data", recon_main,
+              ["gd", p("dataset_pd.h5"), *shape, "--iterations", str(args.gd_iterations),
+               "--seed", "1", "--out", p("gd.h5")], key="gd")
+    demo.step("neural backprojection (hash grid + MLP), deconvolved data", recon_main,
+              ["nbp", p("dataset_pd.h5"), *shape, "--iterations", str(args.nbp_iterations),
+               *nbp_options, "--seed", "1", "--out", p("nbp.h5")], key="nbp")
+    scores = {}
+    for name in METHODS:
+        extra = ["--vti", p(f"{name}.vti")] if name == "nbp" else []
+        demo.step(f"export {name}: MIPs, marching-cubes mesh" + (", ParaView file" if extra else ""),
+                  recon_main, ["export", p(f"{name}.h5"), "--mip", p(f"{name}_mip.png"),
+                               "--mesh", p(f"{name}.ply"), *extra])
+        text = demo.step(f"score {name} against the scene's mesh (above the ground)", recon_main,
+                         ["evaluate", p(f"{name}.h5"), "--gt", p("dataset.h5"), *ABOVE_GROUND,
+                          "--no-images", "--json"], summarize=score_line)
+        scores[name] = json.loads(text)
+    figure = comparison_figure(out, scores, args.scene)
+    demo.log.append(f"## comparison figure: ground truth, BP, GD, NBP\n{figure}\n")
+    print(f"\n== comparison figure: ground truth, BP, GD, NBP\n{figure}")
+    summary = verdict(scores, demo.seconds)
+    (out / "scores.json").write_text(json.dumps(
+        {key: {"iou": scores[key]["iou"], "chamfer_m": scores[key]["chamfer_m"],
+               "seconds": demo.seconds.get(key)} for key in METHODS}, indent=1))
+    print(summary)
+    demo.log.append("## verdict (exact protocol, threshold 0.2, above the ground)\n" + summary)
+
+    # 4. the real scan shipped with sonarsim
+    raw = data.root() / "airsas_real"
+    demo.step("import the raw LabVIEW excerpt of the real scan (first 6 flights)", sonarsim_main,
+              ["import-airsas", str(raw / "small_features_cutout_5k"), "--background",
+               str(raw / "bg_5k"), "--out", p("airsas_excerpt.h5")])
+    real = str(data.path(data.REAL_SCAN))
+    demo.step("the real AirSAS scan shipped with sonarsim (360 pings, 5 kHz LFM)",
+              sonarsim_main, ["info", real])
+    demo.step("backproject the real scan on the turntable plane z = 0", recon_main,
+              ["backproject", real, *real_plane, "--out", p("airsas_bp.h5")])
+    demo.step("deconvolve the real scan (Wiener)", recon_main,
+              ["deconvolve", real, "--method", "wiener", "--out", p("airsas_pd.h5")])
+    demo.step("backproject the deconvolved real scan", recon_main,
+              ["backproject", p("airsas_pd.h5"), *real_plane, "--out", p("airsas_bp_pd.h5")])
+    for name in ("airsas_bp", "airsas_bp_pd"):
+        demo.step(f"export the real-scan image {name}", recon_main,
+                  ["export", p(f"{name}.h5"), "--mip", p(f"{name}.png")])
 
     total = time.perf_counter() - t_start
-    (out / "SUMMARY.txt").write_text(
-        f"sonarsim demo ({total:.0f} s)\n\n" + "\n".join(log))
+    (out / "SUMMARY.txt").write_text(f"sonarsim demo ({total:.0f} s)\n\n" + "\n".join(demo.log))
     print(f"\ndemo finished in {total:.0f} s; pictures and SUMMARY.txt in {out}/")
     return 0
 

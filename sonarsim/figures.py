@@ -71,3 +71,49 @@ def max_pool_rows(rows: np.ndarray, group: int) -> np.ndarray:
     if full < len(rows):
         parts.append(rows[full:].max(axis=0, keepdims=True))
     return np.concatenate(parts)
+
+
+def voxel_extent(bounds, shape, axis: int) -> tuple[float, float]:
+    """Outer edges (m) of the voxels along ``axis``: voxel centres span ``bounds[axis]``
+    (lo, hi), so the image covers lo - d/2 .. hi + d/2 with d = (hi - lo) / (n - 1); a
+    single voxel takes the smallest spacing of the other axes."""
+    b = np.asarray(bounds, dtype=np.float64)
+    n = np.asarray(shape)
+    steps = np.where(n > 1, (b[:, 1] - b[:, 0]) / np.maximum(n - 1, 1), np.inf)
+    d = steps[axis] if n[axis] > 1 else float(steps.min())
+    d = d if np.isfinite(d) else 1.0
+    return float(b[axis, 0] - d / 2), float(b[axis, 1] + d / 2)
+
+
+def mip_comparison(columns: list[tuple[str, np.ndarray, np.ndarray]], path: Path, *,
+                   colorbar_label: str = "|σ| / max |σ| (per volume)",
+                   suptitle: str = "") -> Path:
+    """A comparison figure: one column per volume, top view (maximum-intensity projection
+    along z) above side view (MIP along y), one colour scale [0, 1] and one colour bar.
+
+    ``columns``: ``(title, magnitude [nx, ny, nz] in [0, 1], bounds [3, 2] of the voxel
+    centres in m)`` each; the title may hold several lines (e.g. the scores). Views are
+    drawn with equal metre scales on both axes so shapes are not squashed.
+    """
+    from matplotlib.figure import Figure
+
+    views = ((2, "top view (MIP along z)"), (1, "side view (MIP along y)"))
+    fig = Figure(figsize=(3.3 * len(columns) + 1.2, 7.0), layout="constrained")
+    axs = fig.subplots(2, len(columns), squeeze=False)
+    image = None
+    for col, (title, magnitude, bounds) in enumerate(columns):
+        mag = np.asarray(magnitude, dtype=np.float32)
+        for row, (axis, view) in enumerate(views):
+            u, v = [a for a in range(3) if a != axis]
+            ax = axs[row, col]
+            image = ax.imshow(mag.max(axis=axis).T, origin="lower", cmap="inferno", vmin=0,
+                              vmax=1, interpolation="nearest", aspect="equal",
+                              extent=(*voxel_extent(bounds, mag.shape, u),
+                                      *voxel_extent(bounds, mag.shape, v)))
+            ax.set_xlabel(f"{'xyz'[u]} (m)")
+            ax.set_ylabel(f"{'xyz'[v]} (m)")
+            ax.set_title(f"{title}\n{view}" if row == 0 else view, fontsize=9)
+    fig.colorbar(image, ax=axs, label=colorbar_label, shrink=0.8)
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=10)
+    return save_figure(fig, Path(path))

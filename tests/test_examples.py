@@ -120,3 +120,27 @@ def test_api_reference_builds(tmp_path):
     assert "real_scan" in page and "<code>meshes/bunny.obj</code>" in page
     makefile = (ROOT / "Makefile").read_text()
     assert "pdoc --docformat restructuredtext" in makefile
+
+
+def test_demo_verdict_names_the_measured_winner():
+    """scripts/demo.py's verdict is computed from the scores it is given: the best IoU is the
+    highest, the best Chamfer the lowest, and 'NBP wins' is said only when it wins both.
+    (The whole demo, `python scripts/demo.py --quick`, costs about a CPU-minute: not run here.)"""
+    demo = runpy.run_path(str(ROOT / "scripts" / "demo.py"), run_name="demo")
+    seconds = {"bp": 1.0, "gd": 2.0, "nbp": 3.0}
+
+    def scores(iou, chamfer_mm):
+        return {k: {"iou": i, "chamfer_m": c / 1e3} for k, i, c in
+                zip(("bp", "gd", "nbp"), iou, chamfer_mm)}
+
+    text = demo["verdict"](scores((0.30, 0.20, 0.60), (30.0, 40.0, 20.0)), seconds)
+    assert "Best IoU: NBP (deconvolved); best Chamfer: NBP (deconvolved)." in text
+    assert "NBP wins on both: IoU 0.600 vs 0.300" in text and "GD scores below BP" in text
+    text = demo["verdict"](scores((0.30, 0.40, 0.35), (25.0, 40.0, 20.0)), seconds)
+    assert "Best IoU: GD (deconvolved); best Chamfer: NBP (deconvolved)." in text
+    assert "NBP wins" not in text and "NBP does not win" in text
+    assert "GD scores below BP" not in text
+    rows = [line.split() for line in text.splitlines()
+            if line.startswith(("BP ", "GD ", "NBP ")) and line.endswith(" s")]
+    assert [r[0] for r in rows] == ["BP", "GD", "NBP"]
+    assert [float(r[-5]) for r in rows] == [0.30, 0.40, 0.35]          # IoU column

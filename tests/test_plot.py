@@ -264,3 +264,44 @@ def test_bounce_energy_bars_are_linear_shares(transients):
     e = energy_per_bounce(transients)
     np.testing.assert_allclose(heights, 100 * e / e.sum(), rtol=1e-6)
     assert heights.sum() == pytest.approx(100.0)
+
+
+def test_mip_comparison_shows_each_volumes_projections_on_metric_axes(tmp_path):
+    """The comparison figure draws, per column, the MIP along z over the MIP along y of that
+    column's volume (not another's), placed at the voxel edges in metres, on one [0, 1]
+    colour scale with one colour bar."""
+    import matplotlib.image
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+
+    from sonarsim import figures
+
+    rng = np.random.default_rng(0)
+    a = rng.random((5, 4, 3)).astype(np.float32)
+    b = np.zeros((5, 4, 3), np.float32)
+    b[1, 2, 0] = 1.0
+    bounds = np.array([[-0.2, 0.2], [0.0, 0.3], [0.01, 0.05]])
+    captured = {}
+    orig = figures.save_figure
+
+    def keep(fig, path):
+        captured["fig"] = fig
+        return orig(fig, path)
+
+    figures.save_figure = keep
+    try:
+        out = figures.mip_comparison([("A", a, bounds), ("B\nIoU 1", b, bounds)],
+                                     tmp_path / "c.png")
+    finally:
+        figures.save_figure = orig
+    assert matplotlib.image.imread(out).shape[2] in (3, 4)
+    axes = captured["fig"].axes
+    images = [ax for ax in axes if ax.get_images() and ax.get_label() != "<colorbar>"]
+    assert len(images) == 4 and len(axes) == 5            # 2 views x 2 volumes + colour bar
+    top_a, top_b, side_a, side_b = images                 # row-major
+    np.testing.assert_array_equal(top_a.get_images()[0].get_array(), a.max(axis=2).T)
+    np.testing.assert_array_equal(side_b.get_images()[0].get_array(), b.max(axis=1).T)
+    assert top_a.get_images()[0].get_clim() == (0, 1)
+    # x voxel centres -0.2..0.2 at 0.1 m spacing -> edges -0.25..0.25; z 0.01..0.05 -> 0..0.06
+    np.testing.assert_allclose(side_a.get_images()[0].get_extent(), [-0.25, 0.25, 0.0, 0.06])
+    assert figures.voxel_extent(bounds, (5, 4, 1), 2) == pytest.approx((0.01 - 0.05, 0.05 + 0.05))
+    assert "top view" in top_b.get_title() and "side view" in side_b.get_title()
