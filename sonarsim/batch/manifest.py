@@ -10,7 +10,9 @@ import math
 import tomllib
 import types
 import typing
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from .. import limits
@@ -32,10 +34,13 @@ def default_fs() -> float:
     return float(AIRSAS_FS)
 
 
-def settings_fields() -> dict[str, dataclasses.Field]:
-    """The :class:`SimulationSettings` fields a job may set (all but the batch's own)."""
+@functools.lru_cache(maxsize=1)
+def settings_fields() -> Mapping[str, dataclasses.Field]:
+    """The :class:`SimulationSettings` fields a job may set (all but the batch's own); a
+    read-only mapping, made once (planning asks for it several times a job)."""
     from ..simulate import SimulationSettings
-    return {f.name: f for f in dataclasses.fields(SimulationSettings) if f.name not in NOT_SETTINGS}
+    return MappingProxyType({f.name: f for f in dataclasses.fields(SimulationSettings)
+                             if f.name not in NOT_SETTINGS})
 
 
 @functools.lru_cache(maxsize=1)

@@ -131,10 +131,11 @@ def load_job_scene(params: dict):
     return dataclasses.replace(spec, source=f"mesh {mesh} (fit={str(params['fit']).lower()})")
 
 
-def build_simulation(params: dict, *, scene=None, poses=None, digests: dict | None = None):
-    """(scene, poses, settings, digests) of a job's canonical ``params``; ``scene``/``poses``
-    may be given when already loaded, ``digests`` of scene/poses/pulse when already known.
-    The settings carry no batch metadata yet."""
+def build_simulation(params: dict, *, scene=None, poses=None, pulse=None,
+                     digests: dict | None = None):
+    """(scene, poses, settings, digests) of a job's canonical ``params``; ``scene``/``poses``/
+    ``pulse`` may be given when already loaded, ``digests`` of scene/poses/pulse when already
+    known. The settings carry no batch metadata yet."""
     from ..geometry import trajectory
     from ..signals import pulse_from_spec
     from ..simulate import SimulationSettings
@@ -142,7 +143,8 @@ def build_simulation(params: dict, *, scene=None, poses=None, digests: dict | No
     spec = scene if scene is not None else load_job_scene(params)
     if poses is None:
         poses = trajectory(params["poses"], box=spec.box)
-    pulse = pulse_from_spec(params["pulse"], params["fs"], params.get("pulse_samples"))
+    if pulse is None:
+        pulse = pulse_from_spec(params["pulse"], params["fs"], params.get("pulse_samples"))
     values = {k: _settings_value(params[k]) for k in fields_ if k in params}
     try:
         settings = SimulationSettings(pulse=pulse, **values)
@@ -211,7 +213,7 @@ class _Loader:
     def __init__(self):
         self.scenes: dict[str, Any] = {}
         self.poses: dict[tuple, tuple] = {}
-        self.pulses: dict[tuple, str] = {}
+        self.pulses: dict[tuple, tuple] = {}
         self.integrators: dict = {}
         self.notes: list[str] = []
 
@@ -232,8 +234,16 @@ class _Loader:
             poses = trajectory(params["poses"], box=spec.box)
             self.poses[key] = (poses, poses_digest(poses))
         poses, p_digest = self.poses[key]
+        key = (json.dumps(params["pulse"], sort_keys=True), params["fs"],
+               params.get("pulse_samples"))
+        if key not in self.pulses:
+            from ..signals import pulse_from_spec
+            pulse = pulse_from_spec(params["pulse"], params["fs"], params.get("pulse_samples"))
+            self.pulses[key] = (pulse, pulse_digest(pulse))
+        pulse, u_digest = self.pulses[key]
         spec, poses, settings, digests = build_simulation(
-            params, scene=spec, poses=poses, digests={"scene": s_digest, "poses": p_digest})
+            params, scene=spec, poses=poses, pulse=pulse,
+            digests={"scene": s_digest, "poses": p_digest, "pulse": u_digest})
         preflight(spec, poses, settings)
         check_integrator(settings, self.integrators)
         return spec, digests
