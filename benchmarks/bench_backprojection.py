@@ -78,7 +78,7 @@ def dataset(n_pings: int, n_samples: int = 608, start_sample: int = 217, seed: i
     w = rng.standard_normal((n_pings, n_samples)).astype(np.float32)
     box = geometry.AIRSAS_REAL_BOX
     return SonarDataset(waveforms=w, tx=tx, rx=rx, boresight=bore,
-                        pulse=signals.named_pulse("lfm-20k", 100e3), fs=100e3,
+                        pulse=signals.named_pulse("lfm-20k", signals.AIRSAS_FS), fs=signals.AIRSAS_FS,
                         sound_speed=345.0, source="benchmark", start_sample=start_sample,
                         meta={"box": np.stack([box.lo, box.hi], axis=1).tolist()})
 
