@@ -42,3 +42,38 @@ def turntable_plane():
     x, y, _ = g.axes()
     X, Y = np.meshgrid(x, y, indexing="ij")
     return g, X, Y, np.hypot(X, Y) < 0.15
+
+
+#: The analytic sphere of the renderer's closed-form tests: radius (m), centred at the origin.
+SPHERE_RADIUS = 0.1
+
+
+@pytest.fixture(scope="session")
+def sphere_scene(mi):
+    """One analytic Mitsuba sphere (radius :data:`SPHERE_RADIUS`, centre at the origin, white
+    Lambertian, albedo 1): exact intersections and normals (a triangle mesh would bias a cap
+    integral by far more than 1 %). Shared by the renderer's tests; do not modify it."""
+    return mi.load_dict({"type": "scene", "target": {
+        "type": "sphere", "radius": SPHERE_RADIUS, "center": [0, 0, 0],
+        "bsdf": {"type": "diffuse", "reflectance": {"type": "spectrum", "value": 1.0}}}})
+
+
+#: The point target of the solver tests (m), between the voxel centres of point_target_grid.
+POINT_TARGET = (0.004, -0.006, 0.1015)
+
+
+@pytest.fixture(scope="session")
+def point_target_scan():
+    """A noiseless 20-ping circular scan at 6 heights (0 .. 0.25 m) of one point at
+    :data:`POINT_TARGET` (:func:`recon.synthetic.point_dataset`), made once."""
+    import numpy as np
+    from recon import synthetic
+    return synthetic.point_dataset([np.array(POINT_TARGET)], n_pings=20,
+                                   heights=np.linspace(0.0, 0.25, 6))
+
+
+@pytest.fixture(scope="session")
+def point_target_grid():
+    """A 21 x 21 x 21 grid of 2 mm voxels, x, y in [-0.02, 0.02] m, z in [0.08, 0.12] m."""
+    from recon.grid import Grid
+    return Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (21, 21, 21))

@@ -15,6 +15,7 @@ from scipy.integrate import quad
 from scipy.optimize import brentq
 from scipy.special import j1
 
+from conftest import SPHERE_RADIUS
 from sonarsim.errors import InputError
 
 C = 344.973                 # m/s
@@ -62,7 +63,7 @@ def cone_solid_angle(full_deg):
 
 
 # ------------------------------------------------------- closed form: Lambertian sphere
-D_SPHERE, R_SPHERE = 1.0, 0.1
+D_SPHERE, R_SPHERE = 1.0, SPHERE_RADIUS   # sphere_scene (conftest): Mitsuba's analytic sphere
 
 
 class SphereCap:
@@ -99,14 +100,6 @@ class SphereCap:
         second = solid_angle * self._integral(
             lambda c, rr: (self.rho / math.pi) ** 2 * c ** 3 / rr ** 6, self.phi_max)
         return math.sqrt(second / self.total() ** 2 - 1) / math.sqrt(paths)
-
-
-@pytest.fixture(scope="module")
-def sphere_scene(mi):
-    # Mitsuba's analytic 'sphere': exact intersections and normals. A triangle mesh would
-    # bias the cap integral (faceted normals, chordal area) by far more than 1 %.
-    return mi.load_dict({"type": "scene", "target": {
-        "type": "sphere", "radius": R_SPHERE, "center": [0, 0, 0], "bsdf": diffuse(1.0)}})
 
 
 def test_sphere_matches_closed_form(mi, sphere_scene):

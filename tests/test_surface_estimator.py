@@ -20,12 +20,6 @@ from test_sonar_transient import (DOWN, D_SPHERE, GROUND_HALF, R_SPHERE, W, Sphe
 BUNNY = data.path("bunny.obj")
 
 
-@pytest.fixture(scope="module")
-def sphere_scene(mi):
-    return mi.load_dict({"type": "scene", "target": {
-        "type": "sphere", "radius": R_SPHERE, "center": [0, 0, 0], "bsdf": diffuse(1.0)}})
-
-
 def test_sphere_closed_form(mi, sphere_scene):
     """Total and energy CDF of the analytic sphere (cell grid of ``sample_position``)."""
     cap = SphereCap(D_SPHERE, R_SPHERE)
