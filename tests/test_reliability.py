@@ -709,6 +709,19 @@ def test_a_volume_given_as_dataset_says_what_it_is(ds_file, tmp_path, capsys, co
     assert "this is a volume file, not a sonar dataset" in line and "corrupt" not in line
 
 
+@pytest.mark.parametrize("command", ["backproject", "pfa", "gd", "nbp", "deconvolve"])
+def test_a_transients_file_given_as_dataset_says_what_it_is(tmp_path, capsys, command):
+    from sonarsim.dataset import Transients
+    rng = np.random.default_rng(0)
+    tr = tmp_path / "t.h5"
+    Transients(rng.random((2, 1, 50), dtype=np.float32), 1.0, 343.0 / (1e5 * 20), 343.0, 1e5, 20,
+               rng.random((2, 3)), rng.random((2, 3))).write(tr)
+    grid = [] if command == "deconvolve" else ["--shape", "5", "5", "5", "--no-progress"]
+    assert recon_main([command, str(tr), "--out", str(tmp_path / "w.h5"), *grid]) == 2
+    line = one_line_error(capsys)
+    assert "this is a transients file, not a sonar dataset" in line and "corrupt" not in line
+
+
 def test_a_full_disk_is_one_line_before_writing(ds_file, tmp_path, capsys, monkeypatch):
     from sonarsim import atomic
     monkeypatch.setattr(atomic, "free_bytes", lambda path: 1000)
