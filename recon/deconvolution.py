@@ -319,7 +319,27 @@ class INRSettings:
             f"samples x {per_sample} bytes")
 
 
+    def cpu_seconds_estimate(self, n_pings: int, n_samples: int) -> float:
+        """Rough CPU time (s, user+sys, within about 2x) of fitting ``n_pings`` pings of
+        ``n_samples`` samples: :data:`INR_CPU_S_PER_SAMPLE_ITERATION` (the default network)
+        per sample and iteration, scaled by the per-sample activations of this network
+        against the default's (the MLP and the encoding dominate the cost). Wall time on k
+        idle cores is about this / k."""
+        def activations(st):
+            return st.n_levels * st.features_per_level + st.width * max(st.hidden_layers, 1) * 2 + 1
+        scale = activations(self) / activations(INRSettings())
+        return (INR_CPU_S_PER_SAMPLE_ITERATION * scale * int(n_pings) * int(n_samples)
+                * self.iterations)
+
+
 MAX_RESOLUTION = 1 << 24     # finest hash-grid resolution: float32 coordinates resolve 2^-24
+
+# CPU seconds per sample and Adam iteration of the default network, measured on the
+# Table-2 bunny (360 pings x 718 samples, 20 iterations, start-up included: 14.6 s CPU on
+# 2 shared cores; benchmarks/bench_deconvolution.py: 3.6 ms wall per ping-iteration at 1000
+# samples on 2 loaded cores). A full 54 000-ping scan at 300 iterations:
+# 54 000 x 718 x 300 x 2.5e-6 s = 8.1 CPU-hours (about 4 h on 2 idle cores).
+INR_CPU_S_PER_SAMPLE_ITERATION = 2.5e-6
 
 
 # One line of help per INRSettings field (the `recon deconvolve` options are derived from both).
@@ -471,14 +491,37 @@ def inr(waveforms, pulse, settings: INRSettings | None = None, progress: bool = 
 
 # ---- datasets ------------------------------------------------------------------------------
 
+def check_inr_time(n_pings: int, n_samples: int, settings: INRSettings,
+                   max_hours: float | None) -> float:
+    """Estimated wall hours of an INR fit on this machine's cores; logged, and refused in one
+    line (InputError) above ``max_hours``."""
+    import logging
+    import os
+    cores = max(1, os.cpu_count() or 1)
+    hours = settings.cpu_seconds_estimate(n_pings, n_samples) / cores / 3600
+    what = (f"{n_pings} pings x {n_samples} samples x {settings.iterations} iterations on "
+            f"{cores} core(s)")
+    if max_hours is not None and hours > max_hours:
+        raise InputError(f"inr: estimated {hours:.2g} h for {what}, above --max-hours "
+                         f"{max_hours:g}; use --method wiener (seconds), fewer --pings or "
+                         "--iterations, or raise --max-hours")
+    logging.getLogger(__name__).info("inr: estimated %.2g min for %s", hours * 60, what)
+    return hours
+
+
 def deconvolve(dataset, method: str = "inr", *, wiener_lambda: float | None = None,
-               inr_settings: INRSettings | None = None, progress: bool = True):
+               inr_settings: INRSettings | None = None, progress: bool = True,
+               max_hours: float | None = None):
     """A new :class:`~sonarsim.dataset.SonarDataset` whose waveforms are the deconvolved
     analytic signals [N, T] complex64 (``waveform_kind = 'deconvolved_analytic'``).
 
     Geometry, pulse, fs, sound speed, start_sample, ground truth and meta are kept (stored
     transients are dropped); meta gains ``deconvolution_method`` and
     ``deconvolution_settings`` (a dict: the settings and what was estimated/measured).
+
+    INR: the estimated wall time (:meth:`INRSettings.cpu_seconds_estimate` over this
+    machine's cores) is logged before the fit, and a run above ``max_hours`` (None: no
+    bound) is refused (InputError) before any work.
     """
     from sonarsim.dataset import SonarDataset
     if method not in METHODS:
@@ -486,6 +529,9 @@ def deconvolve(dataset, method: str = "inr", *, wiener_lambda: float | None = No
     if getattr(dataset, "waveform_kind", "real") != "real":
         raise InputError(f"dataset waveforms are already '{dataset.waveform_kind}', "
                          "deconvolve the original dataset")
+    if method == "inr":
+        check_inr_time(dataset.n_pings, dataset.n_samples, inr_settings or INRSettings(),
+                       max_hours)
     if method == "wiener":
         sig, info = wiener(dataset.waveforms, dataset.pulse, wiener_lambda)
     else:

@@ -261,3 +261,22 @@ def test_cli_options_are_the_inr_settings():
     for f in dataclasses.fields(dc.INRSettings):
         expected = {"n_levels": 3, "per_level_scale": 2.0}.get(f.name, getattr(d, f.name))
         assert getattr(args, f.name) == expected, f.name
+
+
+def test_inr_cost_is_estimated_and_a_long_run_refused_before_any_work(tmp_path, capsys):
+    """The INR's cost grows with pings x samples x iterations: a run estimated above
+    --max-hours is refused in one line naming the alternative, before any fitting (no output
+    file); within the bound the estimate is printed."""
+    st = dc.INRSettings()
+    one = st.cpu_seconds_estimate(360, 718)
+    assert one == pytest.approx(dc.INR_CPU_S_PER_SAMPLE_ITERATION * 360 * 718 * 300)
+    assert st.cpu_seconds_estimate(720, 718) == pytest.approx(2 * one)
+    assert dc.INRSettings(width=128, hidden_layers=3).cpu_seconds_estimate(360, 718) > 3 * one
+    _, path = _point_dataset(tmp_path, 12)
+    out = tmp_path / "pd.h5"
+    rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--max-hours", "1e-9")
+    assert rc == 2 and "estimated" in err and "--method wiener" in err, err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
+    rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--iterations", "2",
+                     "--pings-per-inr", "6", "--no-progress")
+    assert rc == 0 and "inr: estimated" in err, err

@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 
 # Spellings of earlier releases kept beside the derived --n-levels.
 ALIASES = {"n_levels": ("--levels",)}
+
+DEFAULT_MAX_HOURS = 1.0
 
 HELP = ("Pulse-deconvolve a sonar dataset (neural INR or Wiener); writes a dataset of "
         "deconvolved analytic signals that every solver reads.")
@@ -31,23 +34,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         kind = int if "int" in str(f.type) else float
         g.add_argument(*names, dest=f.name, type=kind, default=getattr(d, f.name),
                        help=f"{INR_HELP[f.name]} (default {getattr(d, f.name)})")
+    parser.add_argument("--max-hours", type=float, default=DEFAULT_MAX_HOURS, metavar="H",
+                        help="refuse an INR run whose estimated wall time on this machine's "
+                             f"cores exceeds H hours (default {DEFAULT_MAX_HOURS:g}; the "
+                             "estimate is printed before the fit)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     from sonarsim.dataset import SonarDataset
+    from sonarsim.errors import InputError
     from .. import deconvolution
     from . import _common
     settings = deconvolution.INRSettings(**{f.name: getattr(args, f.name)
                                             for f in dataclasses.fields(deconvolution.INRSettings)})
     if args.method == "inr":
         settings.validate()
+    if not (args.max_hours > 0 and math.isfinite(args.max_hours)):
+        raise InputError(f"--max-hours: must be a positive number of hours, got {args.max_hours!r}")
     ds = SonarDataset.read(args.dataset, transients=False)
     idx = _common.parse_slice(args.pings, ds.n_pings)
     if idx is not None:
         ds = ds.select(idx)
     out = deconvolution.deconvolve(ds, args.method, wiener_lambda=args.wiener_lambda,
-                                   inr_settings=settings, progress=not args.no_progress)
+                                   inr_settings=settings, progress=not args.no_progress,
+                                   max_hours=args.max_hours)
     out.meta["deconvolution_settings"]["dataset"] = str(args.dataset)
     out.write(args.out)
     info = out.meta["deconvolution_settings"]
