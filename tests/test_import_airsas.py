@@ -269,3 +269,18 @@ def test_binary_garbage_and_blank_lines_name_the_line(small):
     path.write_bytes(b"\n".join(rows))
     with pytest.raises(FormatError, match=r"Flight-000001\.csv: line 10: empty line"):
         import_airsas(scan, bg, progress=False)
+
+
+def test_reading_flights_shows_progress_in_logs_and_quiet_silences_it(shared_data, tmp_path,
+                                                                       capsys, monkeypatch):
+    """Progress goes through sonarsim.progress: timed lines when stderr is a log, nothing
+    under -q (it was a bare tqdm bar: a log saw carriage returns, -q did not silence it)."""
+    from sonarsim.cli import main
+    monkeypatch.setenv("SONARSIM_PROGRESS_INTERVAL", "0.000001")
+    argv = ["import-airsas", str(shared_data / SCAN), "--background",
+            str(shared_data / BACKGROUND)]
+    assert main([*argv, "--out", str(tmp_path / "a.h5")]) == 0
+    err = capsys.readouterr().err
+    assert "reading small_features_cutout_5k" in err and "flight" in err and "\r" not in err
+    assert main(["-q", *argv, "--out", str(tmp_path / "b.h5")]) == 0
+    assert capsys.readouterr().err == ""

@@ -22,7 +22,6 @@ sound speed ``331.4 + 0.6·mean(T)`` m/s from the per-ping temperatures (kept in
 from __future__ import annotations
 
 import re
-import sys
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -333,19 +332,21 @@ def _read_flights(scan_dir: Path, background_dir: Path | None, flights: np.ndarr
     Returns (differences, scan row counts, background row counts); a difference is None
     where the two files differ in length (reported by :func:`_check_lengths`).
     """
-    from tqdm import tqdm
+    from ..progress import progress_bar
 
     data, scan_counts, bg_counts = [], [], []
-    for f in tqdm(flights, desc=f"reading {scan_dir.name}", unit="flight",
-                  disable=not progress, leave=False):
-        name = FLIGHT_PATTERN.format(int(f))
-        ping = read_flight(scan_dir / name)[:, 0]
-        scan_counts.append(ping.size)
-        if background_dir is not None:
-            empty = read_flight(background_dir / name)[:, 0]
-            bg_counts.append(empty.size)
-            ping = ping - empty if empty.size == ping.size else None
-        data.append(None if ping is None else ping.astype(np.float32))
+    with progress_bar(len(flights), progress, unit="flight", desc=f"reading {scan_dir.name}",
+                      leave=False) as bar:
+        for f in flights:
+            name = FLIGHT_PATTERN.format(int(f))
+            ping = read_flight(scan_dir / name)[:, 0]
+            scan_counts.append(ping.size)
+            if background_dir is not None:
+                empty = read_flight(background_dir / name)[:, 0]
+                bg_counts.append(empty.size)
+                ping = ping - empty if empty.size == ping.size else None
+            data.append(None if ping is None else ping.astype(np.float32))
+            bar.update(1)
     return data, scan_counts, bg_counts
 
 
@@ -383,8 +384,8 @@ def import_airsas(scan_dir: str | Path, background_dir: str | Path | None = None
     if not scan_dir.is_dir():
         raise FormatError(f"{scan_dir}: not a directory")
     box = geometry.AIRSAS_REAL_BOX if box is None else box
-    if progress is None:
-        progress = sys.stderr.isatty()
+    if progress is None:       # progress_bar decides: a bar on a terminal, else log lines
+        progress = True
 
     sys_path = scan_dir / SYS_PARAMS
     params = read_sys_params(sys_path)
