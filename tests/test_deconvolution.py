@@ -250,13 +250,13 @@ def test_cli_bad_input_gives_one_line_errors(tmp_path, capsys):
 
 def test_cli_options_are_the_inr_settings():
     """Every INRSettings field is a `recon deconvolve` option with its default (derived, not
-    declared by hand), and the earlier spelling --levels still works."""
+    declared by hand)."""
     import argparse
     import dataclasses
     from recon.commands import deconvolve as cmd
     parser = argparse.ArgumentParser()
     cmd.add_arguments(parser)
-    args = parser.parse_args(["d.h5", "--out", "o.h5", "--levels", "3", "--per-level-scale", "2"])
+    args = parser.parse_args(["d.h5", "--out", "o.h5", "--n-levels", "3", "--per-level-scale", "2"])
     d = dc.INRSettings()
     for f in dataclasses.fields(dc.INRSettings):
         expected = {"n_levels": 3, "per_level_scale": 2.0}.get(f.name, getattr(d, f.name))

@@ -6,8 +6,6 @@ import dataclasses
 import math
 from pathlib import Path
 
-# Spellings of earlier releases kept beside the derived --n-levels.
-ALIASES = {"n_levels": ("--levels",)}
 
 DEFAULT_MAX_HOURS = 1.0
 
@@ -30,9 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "variance / reflectivity variance, estimated from the data)")
     g = parser.add_argument_group("INR settings")
     for f in dataclasses.fields(INRSettings):
-        names = ("--" + f.name.replace("_", "-"),) + ALIASES.get(f.name, ())
         kind = int if "int" in str(f.type) else float
-        g.add_argument(*names, dest=f.name, type=kind, default=getattr(d, f.name),
+        g.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=getattr(d, f.name),
                        help=f"{INR_HELP[f.name]} (default {getattr(d, f.name)})")
     parser.add_argument("--max-hours", type=float, default=DEFAULT_MAX_HOURS, metavar="H",
                         help="refuse an INR run whose estimated wall time on this machine's "
@@ -56,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
     idx = _common.parse_slice(args.pings, ds.n_pings)
     if idx is not None:
         ds = ds.select(idx)
+    from sonarsim.atomic import check_free_space
+    # the output: the dataset with complex64 instead of float32 waveforms
+    check_free_space(args.out, ds.nbytes() + ds.waveforms.size * 4, "the deconvolved dataset")
     out = deconvolution.deconvolve(ds, args.method, wiener_lambda=args.wiener_lambda,
                                    inr_settings=settings, progress=not args.no_progress,
                                    max_hours=args.max_hours)
