@@ -21,20 +21,21 @@ from .solver import SolverSettings
 BYTES_PER_VOXEL = solver.resources.GD_BYTES_PER_VOXEL
 
 
-def check_options(grid: Grid, preset: str | None = None, **options) -> None:
+def check_options(grid: Grid, preset: str | None = solver.DEFAULT_PRESET[False], **options) -> None:
     """Refuse, before any work, what :func:`solve` would refuse (ranges, lane limit, memory
     estimate): the command line and ``sonarsim batch`` call this."""
     solver.check_options(grid, False, preset, **options)
 
 
-def settings_for(preset: str | None = None, **overrides) -> SolverSettings:
+def settings_for(preset: str | None = solver.DEFAULT_PRESET[False], **overrides) -> SolverSettings:
     """Settings of a voxel run from a preset and explicit overrides."""
     return solver.settings_for(preset, network=False, **overrides)
 
 
 def solve(dataset, grid: Grid, *, checkpoint=None,
           checkpoint_every: int = solver.CHECKPOINT_EVERY, resume: bool = False,
-          progress: bool = True, callback=None, preset: str | None = None, **overrides):
+          progress: bool = True, callback=None,
+          preset: str | None = solver.DEFAULT_PRESET[False], **overrides):
     """Fit complex voxels on ``grid`` to ``dataset``; returns a Volume (method 'gd').
 
     Any :class:`~recon.solver.SolverSettings` field can be given as a keyword.

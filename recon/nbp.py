@@ -3,9 +3,10 @@
 (:mod:`recon.field`) fitted through the ellipsoidal forward model by the solver of
 :mod:`recon.solver` — the same code as gradient descent with a network in place of voxels.
 
-``preset='cpu'`` (the default) is sized for a 2-core CPU (12 hash levels, a 32-wide MLP with 2
-hidden layers, 5 pings × 64 bins × 600 rays per step); ``preset='reference'`` has the
-reference's sizes (14 levels, 128 × 3, 200 bins, 4777 rays) for a GPU variant.
+``preset='nbp'`` (the default, frozen: :data:`recon.solver.PRESETS`) is sized for a 2-core
+CPU (12 hash levels, a 32-wide MLP with 1 hidden layer, 5 pings × 64 bins × 600 rays per
+step; the same sizes as ``preset='cpu'``); ``preset='reference'`` has the reference's sizes
+(14 levels, 128 × 3, 200 bins, 4777 rays) for a GPU variant.
 """
 from __future__ import annotations
 
@@ -16,17 +17,18 @@ from .grid import Grid
 BYTES_PER_VOXEL = solver.resources.NBP_BYTES_PER_VOXEL
 
 
-def check_options(grid: Grid, preset: str | None = "cpu", **options) -> None:
+def check_options(grid: Grid, preset: str | None = solver.DEFAULT_PRESET[True], **options) -> None:
     """Refuse, before any work, what :func:`solve` would refuse (ranges, lane limit, memory
     estimate): the command line and ``sonarsim batch`` call this."""
     solver.check_options(grid, True, preset, **options)
 
 
-def settings_for(preset: str | None = "cpu", **overrides) -> solver.SolverSettings:
+def settings_for(preset: str | None = solver.DEFAULT_PRESET[True], **overrides) -> solver.SolverSettings:
     return solver.settings_for(preset, network=True, **overrides)
 
 
-def solve(dataset, grid: Grid, *, preset: str | None = "cpu", checkpoint=None,
+def solve(dataset, grid: Grid, *, preset: str | None = solver.DEFAULT_PRESET[True],
+          checkpoint=None,
           checkpoint_every: int = solver.CHECKPOINT_EVERY, resume: bool = False,
           progress: bool = True, callback=None, export_grid: Grid | None = None, **overrides):
     """Fit the neural field to ``dataset`` over ``grid``'s box; returns a Volume (method

@@ -158,8 +158,8 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     sim = gd.settings_for("sim")
     assert (sim.lambertian, sim.occlusion_scale, sim.sparsity, sim.init) == (True, 500.0, 1.0, "random")
     d = gd.settings_for(None)
-    assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units) == (
-        False, 0.0, 3.0, "bp", "relative")
+    assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units, d.prior_units) == (
+        False, 0.0, 6.0, "bp", "relative", "energy")
     n = nbp.settings_for(None)                     # the network keeps the full model, no priors
     assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (True, 500.0, 0.0, 500)
     with pytest.raises(InputError):
@@ -257,3 +257,46 @@ def test_priors_and_occlusion_act_in_scene_units():
         (2e3, 4e3, 6e3, 5e5, 0.1))
     a = gd.settings_for(None, sparsity=2.0, lr_units="absolute")
     assert in_scene_units(a, 1e-3) is a
+
+
+def test_prior_weights_scale_with_the_targets_energy():
+    """prior_units 'energy' multiplies the weights of the |σ| priors (not the occlusion
+    scale) by E, the targets' mean energy over the reachable samples (a straightforward loop
+    here); 'peak' and absolute units leave them alone."""
+    from recon.solver import in_scene_units, target_energy
+    s = gd.settings_for(None, sparsity=2.0, smoothness=4.0, tv=6.0, occlusion_scale=500.0)
+    u = in_scene_units(s, 1e-3, 0.25)
+    assert (u.sparsity, u.smoothness, u.tv, u.occlusion_scale) == pytest.approx(
+        (500.0, 1e3, 1.5e3, 5e5))
+    p = gd.settings_for(None, sparsity=2.0, prior_units="peak")
+    assert in_scene_units(p, 1e-3, 0.25).sparsity == pytest.approx(2e3)
+    rng = np.random.default_rng(3)
+    tgt = (rng.standard_normal((5, 40)) + 1j * rng.standard_normal((5, 40))).astype(np.complex64)
+    first, last = np.array([0, 3, 10, 39, 7]), np.array([39, 3, 20, 39, 30])
+    expected = np.mean([np.mean(np.abs(tgt[i, f:l + 1]) ** 2) for i, (f, l)
+                        in enumerate(zip(first, last))])
+    assert target_energy(tgt, first, last) == pytest.approx(expected, rel=1e-6)
+
+
+def test_frozen_presets_are_every_entry_points_default():
+    """One home: the command line, the Python API (and so sonarsim batch and
+    benchmarks/table2, which call solve without a preset) all default to the frozen presets
+    'gd' and 'nbp'; the presets write every value out, and today they equal the fields'
+    defaults (voxels) and the network defaults + the 'cpu' sizes."""
+    import argparse
+    import dataclasses
+    import inspect
+    from recon import solver
+    from recon.commands import _solver_options
+    for network, mod, name in ((False, gd, "gd"), (True, nbp, "nbp")):
+        assert solver.default_preset(network) == name
+        assert inspect.signature(mod.solve).parameters["preset"].default == name
+        assert inspect.signature(mod.settings_for).parameters["preset"].default == name
+        parser = argparse.ArgumentParser()
+        _solver_options.add_arguments(parser, network)
+        assert parser.get_default("preset") == name
+        assert mod.settings_for() == solver.settings_for(name, network=network)
+    assert gd.settings_for() == solver.settings_for(None)
+    assert nbp.settings_for() == solver.settings_for("cpu", network=True)
+    fields = {f.name for f in dataclasses.fields(solver.SolverSettings)}
+    assert set(solver.PRESETS["gd"]) <= fields and set(solver.PRESETS["nbp"]) <= fields

@@ -24,13 +24,15 @@ def _type_of(field):
 
 
 def add_arguments(parser: argparse.ArgumentParser, network: bool) -> None:
-    from ..solver import (CHECKPOINT_EVERY, CHOICES, HELP, PRESETS, SolverSettings, applies_to,
-                          settings_for)
-    base = settings_for(None, network=network)
+    from ..solver import (CHECKPOINT_EVERY, CHOICES, DEFAULT_PRESET, HELP, PRESETS,
+                          SolverSettings, applies_to, settings_for)
+    base = settings_for(DEFAULT_PRESET[network], network=network)
     _common.add_dataset_and_grid(parser)
-    parser.add_argument("--preset", default="cpu" if network else None,
+    frozen = DEFAULT_PRESET[network]
+    parser.add_argument("--preset", default=frozen,
                         help=f"named settings, several joined by '+': {', '.join(PRESETS)} "
-                             f"(default {'cpu' if network else 'none'}); explicit options override it")
+                             f"(default {frozen}: the frozen defaults, docs/reconstruction.md); "
+                             "explicit options override it")
     for f in dataclasses.fields(SolverSettings):
         if not applies_to(f.name, network):
             continue

@@ -36,8 +36,9 @@ from .loop import (check_options, fit, loss_by_tenth, make_scene,  # noqa: F401
 from .priors import in_scene_units, loss_terms, random_directions  # noqa: F401
 from .profiling import PhaseTimer  # noqa: F401
 from .resources import check_resources, memory_estimate  # noqa: F401
-from .sampling import (Sampler, reachable_bins, rolled_frames, target_kind,  # noqa: F401
-                       targets)
-from .settings import (CHECKPOINT_EVERY, CHOICES, HELP, NETWORK_DEFAULTS,  # noqa: F401
-                       NETWORK_ONLY, PRESETS, SolverSettings, applies_to, settings_for)
+from .sampling import (Sampler, reachable_bins, rolled_frames, target_energy,  # noqa: F401
+                       target_kind, targets)
+from .settings import (CHECKPOINT_EVERY, CHOICES, DEFAULT_PRESET, HELP,  # noqa: F401
+                       NETWORK_DEFAULTS, NETWORK_ONLY, PRESETS, SolverSettings, applies_to,
+                       default_preset, settings_for)
 from .voxels import VoxelScene  # noqa: F401

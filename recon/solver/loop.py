@@ -21,7 +21,8 @@ from .checkpoints import check_checkpoint_path, dataset_digest, load_checkpoint,
 from .priors import in_scene_units, loss_terms, random_directions
 from .profiling import _no_timer
 from .resources import check_resources
-from .sampling import Sampler, reachable_bins, rolled_frames, target_kind, targets
+from .sampling import (Sampler, reachable_bins, rolled_frames, target_energy, target_kind,
+                       targets)
 from .settings import CHECKPOINT_EVERY, SolverSettings, applies_to, settings_for
 from .voxels import VoxelScene
 
@@ -123,8 +124,9 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     lr0 = settings.lr * scale
     lr1 = None if settings.lr_final is None else settings.lr_final * scale
     info = {"voxel_scale": scale, "lr_absolute": lr0, "dataset_digest": identity["dataset"],
-            "target_kind": target_kind(dataset, settings)}
-    model = in_scene_units(settings, scale)
+            "target_kind": target_kind(dataset, settings),
+            "target_energy": target_energy(tgt, first, last)}
+    model = in_scene_units(settings, scale, info["target_energy"])
     if x0 is not None and scene.kind != "voxels" and (settings.init == "bp"
                                                         or settings.warm_start_iterations):
         params = scene.warm_start(params, x0, max(settings.warm_start_iterations, 1), rng,

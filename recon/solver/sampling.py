@@ -42,6 +42,17 @@ def targets(dataset, settings: SolverSettings) -> np.ndarray:
     return s.astype(np.complex64)
 
 
+def target_energy(tgt: np.ndarray, first: np.ndarray, last: np.ndarray) -> float:
+    """Mean over pings of the mean |s|² over each ping's reachable samples first..last: the
+    data term of an empty scene (what :func:`recon.solver.in_scene_units` scales the priors
+    by)."""
+    power = np.abs(tgt).astype(np.float64) ** 2
+    cum = np.concatenate([np.zeros((len(power), 1)), np.cumsum(power, axis=1)], axis=1)
+    rows = np.arange(len(power))
+    sums = cum[rows, np.asarray(last) + 1] - cum[rows, np.asarray(first)]
+    return float(np.mean(sums / (np.asarray(last) - np.asarray(first) + 1)))
+
+
 def reachable_bins(dataset, grid: Grid, speeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per ping the first and last waveform sample [N] whose ellipsoid can meet the grid box."""
     corners = np.array(np.meshgrid(*grid.bounds, indexing="ij")).reshape(3, -1).T

@@ -38,7 +38,8 @@ class SolverSettings(NetworkSettings):
     incoherent: bool = False
     lambertian: bool = False       # voxels: the linear model + sparsity (measured,
     occlusion_scale: float = 0.0   # docs/reconstruction.md); NETWORK_DEFAULTS: the full model
-    sparsity: float = 3.0
+    sparsity: float = 6.0
+    prior_units: str = "energy"    # voxels: prior weights × the targets' mean energy (scale-free)
     smoothness: float = 0.0
     phase: float = 0.0
     tv: float = 0.0
@@ -96,6 +97,7 @@ def applies_to(name: str, network: bool) -> bool:
 
 
 CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
+           "prior_units": ("energy", "peak"),
            "data": ("auto", "matched", "analytic", "deconvolved")}
 
 HELP = {
@@ -104,6 +106,10 @@ HELP = {
     "lr": "Adam learning rate (× the voxel scale max|scaled BP| if lr_units is relative)",
     "lr_final": "learning rate at the last step, exponential decay from lr (none = constant)",
     "lr_units": "'relative': lr in units of max|scaled backprojection|; 'absolute': parameter units",
+    "prior_units": "with relative lr units: 'energy' multiplies the weights of the priors on |σ| by "
+                   "the targets' mean energy E (the data term of an empty scene), so they weigh "
+                   "the same against the data in every scene; 'peak': not (targets are "
+                   "normalised to their peak only)",
     "adam_epsilon": "Adam's epsilon",
     "pings_per_iteration": "pings per optimiser step (reference accum_grad)",
     "pings_per_chunk": "pings rendered per backward pass (0 = all at once); bounds memory",
@@ -159,19 +165,41 @@ NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
                         occlusion_scale=500.0, sparsity=0.0, reg_start=500)
 
-# Named sets. 'cpu'/'reference': sampling and network sizes; 'sim'/'airsas': the reference's
-# per-scene priors (scripts of the paper's code, §4.8 of the method description).
+# Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
+# matters written out, so a change of a field's default above cannot move them; which scenes
+# and measurements chose each value: docs/reconstruction.md, "Presets"). 'cpu'/'reference':
+# sampling and network sizes; 'sim'/'airsas': the reference's per-scene priors (scripts of
+# the paper's code, §4.8 of the method description).
 PRESETS = {
+    "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
+               pings_per_iteration=5, pings_per_chunk=0, bins_per_ping=110, n_rays=2000,
+               beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
+               sparsity=6.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
+               reg_start=200),
+    "nbp": dict(NETWORK_DEFAULTS, iterations=1000, pings_per_iteration=5, pings_per_chunk=5,
+                bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
+                hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
+                hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False),
     "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
                 hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
                       hash_log2_size=15, mlp_width=128, mlp_hidden=3),
     "sim": dict(bins_per_ping=110, scale_factor=10.0, lambertian=True, occlusion_scale=500.0,
-                sparsity=1.0, smoothness=0.0, phase=0.0, reg_start=500, init="random"),
+                sparsity=1.0, prior_units="peak", smoothness=0.0, phase=0.0, reg_start=500,
+                init="random"),
     "airsas": dict(bins_per_ping=200, scale_factor=30.0, lambertian=True, occlusion_scale=1000.0,
-                   sparsity=10.0, smoothness=50.0, phase=0.1, reg_start=500, beamwidth_deg=30.0,
-                   init="random"),
+                   sparsity=10.0, prior_units="peak", smoothness=50.0, phase=0.1, reg_start=500,
+                   beamwidth_deg=30.0, init="random"),
 }
+
+# The preset each entry point uses when none is named: recon gd / recon nbp, the Python
+# API (recon.gradient_descent.solve, recon.nbp.solve), sonarsim batch and benchmarks/table2.
+DEFAULT_PRESET = {False: "gd", True: "nbp"}
+
+
+def default_preset(network: bool) -> str:
+    """The frozen preset of the voxels (False) or the network (True)."""
+    return DEFAULT_PRESET[bool(network)]
 
 
 def settings_for(preset: str | None = None, network: bool = False, **overrides) -> SolverSettings:
