@@ -1,6 +1,7 @@
 """recon.gradient_descent: a point scatterer, loss and residual against BP, checkpoints, CLI."""
 import numpy as np
 import pytest
+from conftest import POINT_TARGET
 
 from recon import backprojection as bp
 from recon import forward as F
@@ -10,7 +11,7 @@ from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
 
-POINT = np.array([0.004, -0.006, 0.1015])
+POINT = np.array(POINT_TARGET)
 SEED = 11
 # Linear model (no Lambertian factor, no occlusion) so that GD minimises exactly the
 # residual through the operator A used for the comparison below; narrow cone, many rays,
@@ -23,13 +24,13 @@ FAST = dict(lambertian=False, occlusion_scale=0.0, sparsity=0.0, bins_per_ping=3
 
 
 @pytest.fixture(scope="module")
-def point_ds():
-    return synthetic.point_dataset([POINT], n_pings=20, heights=np.linspace(0.0, 0.25, 6))
+def point_ds(point_target_scan):
+    return point_target_scan
 
 
 @pytest.fixture(scope="module")
-def grid():
-    return Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (21, 21, 21))
+def grid(point_target_grid):
+    return point_target_grid
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +139,7 @@ def test_cli_round_trip(point_ds, tmp_path, capsys):
     point_ds.write(src)
     out = tmp_path / "v.h5"
     rc = main(["gd", str(src), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.1", "0.1",
-               "--shape", "7", "7", "1", "--iterations", "3", "--rays", "100", "--bins-per-ping", "8",
+               "--shape", "7", "7", "1", "--iterations", "3", "--n-rays", "100", "--bins-per-ping", "8",
                "--lr", "0.01", "--sparsity", "0.5", "--seed", "4", "--out", str(out), "--no-progress"])
     assert rc == 0
     vol = Volume.read(out)

@@ -2,28 +2,29 @@
 checkpoint/resume, a point target, and one forward model for voxels and network."""
 import numpy as np
 import pytest
+from conftest import POINT_TARGET
 
 from recon import backprojection as bp
 from recon import forward as F
-from recon import measurements, nbp, solver, synthetic
+from recon import measurements, nbp, solver
 from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import FormatError, InputError
 
-POINT = np.array([0.004, -0.006, 0.1015])
+POINT = np.array(POINT_TARGET)
 TINY = dict(hash_levels=4, hash_base_resolution=4, hash_log2_size=12, mlp_width=16,
             mlp_hidden=1, bins_per_ping=16, n_rays=200, pings_per_iteration=4,
             pings_per_chunk=2, beamwidth_deg=5.0, init="random", warm_start_iterations=0)
 
 
 @pytest.fixture(scope="module")
-def point_ds():
-    return synthetic.point_dataset([POINT], n_pings=20, heights=np.linspace(0.0, 0.25, 6))
+def point_ds(point_target_scan):
+    return point_target_scan
 
 
 @pytest.fixture(scope="module")
-def grid():
-    return Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (21, 21, 21))
+def grid(point_target_grid):
+    return point_target_grid
 
 
 def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
@@ -33,8 +34,8 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
     out = tmp_path / "v.h5"
     rc = main(["nbp", str(src), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
                "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
-               "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--rays", "200",
-               "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth", "5",
+               "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--n-rays", "200",
+               "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth-deg", "5",
                "--seed", "3", "--init", "random", "--out", str(out), "--no-progress"])
     printed = capsys.readouterr().out
     assert rc == 0 and "neural backprojection" in printed

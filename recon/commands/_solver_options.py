@@ -9,7 +9,6 @@ import dataclasses
 from . import _common
 
 # Extra spellings kept for compatibility with earlier releases.
-ALIASES = {"n_rays": ("--rays",), "beamwidth_deg": ("--beamwidth",)}
 
 
 def _type_of(field):
@@ -37,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser, network: bool) -> None:
         if not applies_to(f.name, network):
             continue
         flag = "--" + f.name.replace("_", "-")
-        names = (flag,) + ALIASES.get(f.name, ())
+        names = (flag,)
         kind = _type_of(f)
         text = f"{HELP.get(f.name, '')} (default {getattr(base, f.name)})"
         if kind is bool:
