@@ -31,6 +31,7 @@ import dataclasses
 import importlib
 import inspect
 import json
+import re
 import time
 from pathlib import Path
 
@@ -250,11 +251,39 @@ def _check_bounds6(value, what: str) -> list:
 
 # ----------------------------------------------------------------------------- plan
 
+def _manifest_words(message: str, keys) -> str:
+    """A message of the command line's rules in a manifest's words: ``--voxel-size`` becomes
+    ``voxel_size`` where that is a key of the step (``--max-memory`` and the like stay)."""
+    return re.sub(r"--([a-z][a-z0-9-]*)",
+                  lambda m: m.group(1).replace("-", "_")
+                  if m.group(1).replace("-", "_") in keys else m.group(0), message)
+
+
 def plan_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
               box=None) -> ReconStep:
     """Validate one ``reconstruct`` table of a job (nothing runs): the method, the label, the
     grid over ``box`` (the job's scene box; its memory is checked as the command line checks
-    it), the solver's options, the deconvolution and the evaluation options."""
+    it), the solver's options, the deconvolution and the evaluation options. The checks are
+    the command line's; their messages name the manifest's keys (``voxel_size``, not
+    ``--voxel-size``)."""
+    try:
+        return _plan_step(raw, where, job_name, job_id, out, box)
+    except InputError as exc:
+        keys = set(STEP_KEYS)
+        method = raw.get("method") if isinstance(raw, dict) else None
+        if isinstance(method, str):
+            try:
+                keys |= set(_option_defaults(solver(method, where)[1], raw)[0])
+            except (SonarsimError, TypeError, ValueError):
+                pass
+        text = _manifest_words(str(exc), keys)
+        if text == str(exc):
+            raise
+        raise InputError(text) from None
+
+
+def _plan_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
+               box=None) -> ReconStep:
     method = raw.get("method")
     if not isinstance(method, str):
         raise InputError(f"{where}: reconstruct needs a method ({', '.join(METHOD_MODULES)} "

@@ -571,7 +571,23 @@ def test_batch_absurd_sample_rate_and_grid_say_what_the_cli_says(ds_file, tmp_pa
     assert _batch(_manifest(tmp_path, f'[[job]]\nscene = "sphere"\n[job.reconstruct]\n'
                                       f'method = "backproject"\nbounds = {bounds}\n'
                                       f'voxel_size = 1e-300\n'), tmp_path / "out") == 2
+    # ... in the manifest's words: its keys, not the command line's options
+    for option in ("voxel-size", "shape", "bounds"):
+        cli = cli.replace(f"--{option}", option.replace("-", "_"))
     assert one_line_error(capsys).endswith(": " + cli)
+
+
+@pytest.mark.parametrize("step, message", [
+    ("voxel_size = -1", "reconstruct[0]: voxel_size: must be a positive finite number"),
+    ('method = "gd"\npings_per_iteration = 0', "reconstruct[0]: pings_per_iteration"),
+    ('method = "nbp"\nn_rays = 100000000', "lower n_rays, bins_per_ping or pings_per_chunk"),
+])
+def test_batch_step_messages_name_the_manifests_keys(tmp_path, capsys, step, message):
+    method = "" if "method" in step else 'method = "bp"\n'
+    m = _manifest(tmp_path, f'[[job]]\nscene = "sphere"\n[job.reconstruct]\n{method}{step}\n')
+    assert _batch(m, tmp_path / "out", "--dry-run") == 2
+    line = one_line_error(capsys)
+    assert message in line and "--" not in line.split("reconstruct[0]")[1], line
 
 
 def test_batch_job_count_is_capped_and_planning_is_quick(tmp_path, capsys):
