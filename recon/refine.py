@@ -5,11 +5,15 @@ marching-cubes surface of a reconstructed volume, e.g. NBP's, or a given mesh) a
 vertices (and fits the object's albedo relative to the ground's) by gradient descent so that
 the rendered waveforms match the dataset's:
 
-* **Model.** :class:`recon.mesh_echo.MeshEcho` renders the bounce-1 histograms of the mesh
-  over the known ground with exact occlusion and the Lambertian terms on the current surface;
+* **Model.** The simulator's own renderer through ``mi.render``: a Mitsuba scene of the mesh
+  and the known ground (two-sided diffuse), the ``sonar_transient`` integrator with the
+  dataset's beams and ``bounces`` bounces, one ``sonar`` sensor holding the batch's poses and a
+  ``sonar_film`` on the dataset's time axis (:class:`RenderedScene`). It renders the
+  histograms with exact occlusion and the Lambertian terms on the current surface;
   :class:`recon.pulse_chain.PulseChain` turns them into waveforms with the simulator's chain
-  (oversampled pulse, decimation, the dataset's timing). Gradients: Dr.Jit AD through the
-  renderer, the adjoint of the pulse chain for the waveform part.
+  (oversampled pulse, decimation). Gradients: the integrator's path-replay adjoint
+  (``render_backward``, docs/differentiable.md) fed with the pulse chain's adjoint of the
+  loss gradient. Visibility changes are not differentiated (the renderer's documented bias).
 * **Objective.** The data's absolute scale is unknown, so a global scale α is fitted in closed
   form each step (loss = ‖α·m − y‖²/‖y‖² = 1 − cos²(m, y), :func:`recon.pulse_chain.scaled_misfit`).
   Stage 1 compares envelopes of the matched-filtered signals (smooth on the range-resolution
@@ -21,8 +25,7 @@ the rendered waveforms match the dataset's:
   (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) between segments, which keeps the
   triangles well shaped.
 * **Pings.** The chosen pings are split into interleaved batches (each spans the aperture);
-  one batch per step. Visibility of each batch is traced every ``visibility_every`` visits and
-  reused in between (the geometry moves by well under a millimetre per step).
+  one batch per step.
 
 docs/refine.md has the method, the measured results and their cost.
 """
@@ -36,7 +39,6 @@ import trimesh
 
 from sonarsim.errors import InputError
 
-from .mesh_echo import MeshEcho, Pings, Window
 from .pulse_chain import Envelope, PulseChain, envelope_misfit, scaled_misfit
 
 STAGES = ("envelope", "waveform")
@@ -50,11 +52,12 @@ class RefineSettings:
     envelope_steps, waveform_steps: optimiser steps of the two stages. lr: UniformAdam step
     in metres of latent displacement (decays ×0.1 over each stage, cosine). large_steps_lambda:
     λ of LargeSteps. edge_length: target edge of the isotropic remeshing (m); remesh_every:
-    steps between remeshings (0: only the start mesh is remeshed). order: quadrature points
-    per triangle = order². pings_per_batch: pings per step. visibility_every: steps between
-    shadow-ray passes of a batch. fit_albedo: fit the object's albedo (relative to the
-    ground's; needs a ground). ground_spacing: quadrature cell of the ground (m).
-    oversample: histogram bins per sample (None: the dataset's, else 20). seed: batch order.
+    steps between remeshings (0: only the start mesh is remeshed). pings_per_batch: pings
+    per step. fit_albedo: fit the object's albedo (relative to the ground's; needs a ground).
+    bounces: bounces rendered (1 = single scattering; 2 or more add the multiple scattering
+    between the object and the ground). surface_spacing: the integrator's strata size (m);
+    path_samples: its path-length quantiles per stratum. oversample: histogram bins per
+    sample (None: the dataset's, else 20). seed: the batch order and the renderer's seeds.
     """
 
     envelope_steps: int = 120
@@ -63,11 +66,11 @@ class RefineSettings:
     large_steps_lambda: float = 20.0
     edge_length: float = 5e-3
     remesh_every: int = 100
-    order: int = 2
-    pings_per_batch: int = 256
-    visibility_every: int = 4
+    pings_per_batch: int = 128
     fit_albedo: bool = True
-    ground_spacing: float = 4e-3
+    bounces: int = 1
+    surface_spacing: float = 4e-3
+    path_samples: int = 4
     oversample: int | None = None
     seed: int = 0
 
@@ -75,10 +78,10 @@ class RefineSettings:
         for name in ("envelope_steps", "waveform_steps", "remesh_every"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
                 raise InputError(f"{name} must be a non-negative integer, got {getattr(self, name)}")
-        for name in ("order", "pings_per_batch", "visibility_every"):
+        for name in ("pings_per_batch", "bounces", "path_samples"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer, got {getattr(self, name)}")
-        for name in ("lr", "large_steps_lambda", "edge_length", "ground_spacing"):
+        for name in ("lr", "large_steps_lambda", "edge_length", "surface_spacing"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a positive number, got {v}")
@@ -142,12 +145,14 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
 
 # ------------------------------------------------------------------------ the model
 
-def dataset_window(dataset, oversample: int) -> Window:
-    """Histogram bins aligned to a dataset's samples (bin j·K centred on sample j's path)."""
+def dataset_window(dataset, oversample: int) -> tuple[float, float, int]:
+    """(start, width, bins) of histograms aligned to a dataset's samples: round-trip path
+    (m) of bin 0's lower edge, bin width c/(fs·K), T·K bins; bin j·K is centred on the path
+    of sample j (as ``sonarsim simulate``)."""
     c = float(dataset.sound_speed)
     width = c / (float(dataset.fs) * oversample)
-    return Window(dataset.start_sample * c / dataset.fs - width / 2, width,
-                  dataset.n_samples * oversample)
+    return (dataset.start_sample * c / dataset.fs - width / 2, width,
+            dataset.n_samples * oversample)
 
 
 def dataset_ground(dataset) -> tuple[float, float, float] | None:
@@ -156,8 +161,8 @@ def dataset_ground(dataset) -> tuple[float, float, float] | None:
     from pathlib import Path
     source = dataset.meta.get("scene_source")
     if source and Path(str(source)).is_file():
-        from sonarsim.scene import load_scene
         import warnings
+        from sonarsim.scene import load_scene
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             spec = load_scene(str(source))
@@ -165,6 +170,74 @@ def dataset_ground(dataset) -> tuple[float, float, float] | None:
             return None
         return (float(spec.ground.size[0]), float(spec.ground.size[1]), float(spec.ground.albedo))
     return DEFAULT_GROUND
+
+
+def _diffuse(mi, albedo: float):
+    """A two-sided diffuse BSDF, instantiated on its own: ``mi.load_dict`` shares identical
+    plugin instances, so the object and the ground would otherwise share one albedo."""
+    return mi.load_dict({"type": "twosided", "material": {
+        "type": "diffuse", "reflectance": {"type": "rgb", "value": float(albedo)}}})
+
+
+class RenderedScene:
+    """The mesh, the ground and the sonar as one Mitsuba scene for ``mi.render``.
+
+    ``mesh``: trimesh (m); ``dataset``: its pings and beams; ``window``: (start, width, bins).
+    :meth:`render` returns the histograms [n, bounces, bins] of a batch of pings as a
+    Dr.Jit tensor that carries the gradients of ``vertex_positions`` and the albedo.
+    """
+
+    KEY_V = "target.vertex_positions"
+
+    def __init__(self, mesh: trimesh.Trimesh, dataset, window, ground, settings: RefineSettings,
+                 workdir):
+        from pathlib import Path
+        from sonarsim import runtime
+        self.mi = mi = runtime.mitsuba()
+        import drjit as dr
+        self.dr = dr
+        beams = {k: v for k, v in dict(dataset.meta.get("beams") or {}).items()
+                 if k in ("tx_beam", "tx_beamwidth", "rx_beam", "rx_beamwidth")}
+        path = Path(workdir) / f"mesh_{len(mesh.faces)}_{id(mesh)}.ply"
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+        start, width, bins = window
+        items = {"type": "scene",
+                 "integrator": {"type": "sonar_transient", "max_bounces": settings.bounces,
+                                "surface_spacing": settings.surface_spacing,
+                                "path_samples": settings.path_samples, **beams},
+                 "sensor": {"type": "sonar", "tx_origin": [0.0, 0.0, 1.0],
+                            "tx_boresight": [0.0, 0.0, -1.0],
+                            "film": {"type": "sonar_film", "temporal_bins": int(bins),
+                                     "start_opl": float(start), "bin_width_opl": float(width)}},
+                 "target": {"type": "ply", "filename": str(path), "bsdf": _diffuse(mi, 1.0)}}
+        if ground is not None:
+            items["ground"] = {"type": "rectangle", "bsdf": _diffuse(mi, ground[2]),
+                               "to_world": mi.ScalarTransform4f().scale(
+                                   [ground[0] / 2, ground[1] / 2, 1.0])}
+        self.scene = mi.load_dict(items)
+        self.params = mi.traverse(self.scene)
+        self.key_albedo = next(k for k in self.params.keys()
+                               if k.startswith("target.bsdf") and k.endswith("reflectance.value"))
+        self.tx, self.rx = np.asarray(dataset.tx), np.asarray(dataset.rx)
+        self.tx_dir, self.rx_dir = np.asarray(dataset.boresight), np.asarray(dataset.receiver_boresight)
+
+    @property
+    def vertices(self):
+        """The scene's vertex buffer (Dr.Jit Float [V·3]) and faces (UInt32 [F·3])."""
+        return self.params[self.KEY_V], self.params["target.faces"]
+
+    def render(self, vertices, albedo, index: np.ndarray, seed: int):
+        """Histograms [n, bounces, bins] (TensorXf, differentiable) of pings ``index``."""
+        mi, dr = self.mi, self.dr
+        vec = lambda a: mi.Point3f(*(mi.Float(a[index, i].astype(np.float32)) for i in range(3)))
+        p = self.params
+        p["sensor.tx_origin"], p["sensor.rx_origin"] = vec(self.tx), vec(self.rx)
+        p["sensor.tx_boresight"], p["sensor.rx_boresight"] = vec(self.tx_dir), vec(self.rx_dir)
+        p[self.KEY_V] = vertices
+        p[self.key_albedo] = albedo
+        p.update()
+        out = mi.render(self.scene, p, seed=seed, seed_grad=seed + 0x5EED)
+        return out if len(index) > 1 else out[None]
 
 
 class _Objective:
@@ -181,6 +254,7 @@ class _Objective:
         self._data_env: dict = {}
 
     def __call__(self, stage: str, hist: np.ndarray, batch: int, index: np.ndarray):
+        """(loss, α, ∂loss/∂hist [n, bins]) of histograms [n, bins] (bounces summed)."""
         model = self.chain.forward(hist)
         y = np.asarray(self.data[index], np.float64)
         if stage == "waveform":
@@ -200,9 +274,10 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     """Refine ``init`` (a trimesh, metres) against ``dataset`` (real waveforms).
 
     ping_index: the pings to fit (default all); ground: 'dataset' (:func:`dataset_ground`),
-    None (no ground), or (size_x, size_y, albedo). log: callable(str) for one line per
+    None (no ground), or (size_x, size_y, albedo). log: callable(str), one line per
     remeshing segment.
     """
+    import tempfile
     from sonarsim import runtime
     from sonarsim.progress import progress_bar
     mi = runtime.mitsuba()
@@ -215,72 +290,68 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     ground = dataset_ground(dataset) if ground == "dataset" else ground
     k = int(settings.oversample or dataset.meta.get("oversample", 20))
     window = dataset_window(dataset, k)
-    chain = PulseChain(dataset.pulse, k, dataset.n_samples, window.n_bins)
-    objective = _Objective(dataset, chain)
-    g = None if ground is None else (*ground, settings.ground_spacing)
+    objective = _Objective(dataset, PulseChain(dataset.pulse, k, dataset.n_samples, window[2]))
     vertices, faces = remesh(init.vertices, init.faces, settings.edge_length)
-    echo = MeshEcho(faces, Pings.of_dataset(dataset), window, order=settings.order, ground=g)
 
     n_batches = max(1, int(np.ceil(len(index) / settings.pings_per_batch)))
     rng = np.random.default_rng(settings.seed)
     batches = [index[b::n_batches] for b in range(n_batches)]
     fit_albedo = settings.fit_albedo and ground is not None
-    log_albedo = mi.Float(0.0)
+    log_albedo = 0.0
     plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
-    total = sum(n for _, n in plan)
     history, step, order = [], 0, np.arange(n_batches)
-    bar = progress_bar(total, progress, unit="step", desc="refine")
+    bar = progress_bar(sum(n for _, n in plan), progress, unit="step", desc="refine")
     t0 = time.perf_counter()
-    try:
-        for stage, n_steps in plan:
-            done = 0
-            while done < n_steps:
-                seg = n_steps - done if not settings.remesh_every else min(
-                    settings.remesh_every, n_steps - done)
-                if step > 0:
-                    vertices, faces = remesh(vertices, faces, settings.edge_length)
-                    echo.set_mesh(faces)
-                ls = mi.ad.LargeSteps(mi.Float(vertices.astype(np.float32).ravel()),
-                                      mi.UInt32(faces.astype(np.uint32).ravel()),
-                                      settings.large_steps_lambda)
-                opt = mi.ad.Adam(lr=settings.lr, uniform=True)
-                opt["u"] = ls.to_differential(mi.Float(vertices.astype(np.float32).ravel()))
-                opt_rho = mi.ad.Adam(lr=0.02)
-                opt_rho["log_albedo"] = mi.Float(log_albedo)
-                pairs: dict = {}
-                for j in range(seg):
-                    frac = (done + j) / max(1, n_steps - 1)
-                    opt.set_learning_rate(settings.lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * frac))))
-                    if step % n_batches == 0:
-                        order = rng.permutation(n_batches)
-                    b = int(order[step % n_batches])
-                    v = ls.from_differential(opt["u"])
-                    if b not in pairs or step - pairs[b][1] >= settings.visibility_every * n_batches:
-                        pairs[b] = (echo.visibility(v, batches[b]), step)
-                    rho = dr.exp(opt_rho["log_albedo"])
-                    hist = echo.histograms(v, rho, batches[b], pairs[b][0])
-                    h = hist.numpy().reshape(len(batches[b]), window.n_bins)
-                    loss, alpha, grad = objective(stage, h, b, batches[b])
-                    dr.backward(dr.sum(hist * mi.Float(grad.ravel().astype(np.float32))))
-                    opt.step()
-                    if fit_albedo:
-                        opt_rho.step()
-                    history.append({"step": step, "stage": stage, "loss": loss, "alpha": alpha,
-                                    "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
-                                    "seconds": time.perf_counter() - t0})
-                    step += 1
-                    bar.update(1)
-                vertices = np.asarray(ls.from_differential(opt["u"]).numpy(),
-                                      np.float64).reshape(-1, 3)
-                log_albedo = mi.Float(opt_rho["log_albedo"])
-                done += seg
-                if log is not None:
-                    recent = [h["loss"] for h in history[-min(seg, n_batches * 2):]]
-                    log(f"{stage} steps {done}/{n_steps}: loss {np.mean(recent):.4f}, "
-                        f"{len(faces)} faces, {time.perf_counter() - t0:.0f} s")
-    finally:
-        bar.close()
-    albedo = float(dr.exp(log_albedo)[0]) if fit_albedo else None
-    return RefineResult(vertices, faces, albedo, history,
-                        {**asdict(settings), "pings": int(len(index)), "ground": ground,
-                         "oversample": k})
+    with tempfile.TemporaryDirectory(prefix="refine-") as workdir:
+        try:
+            for stage, n_steps in plan:
+                done = 0
+                while done < n_steps:
+                    seg = n_steps - done if not settings.remesh_every else min(
+                        settings.remesh_every, n_steps - done)
+                    if step > 0:
+                        vertices, faces = remesh(vertices, faces, settings.edge_length)
+                    model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
+                                          window, ground, settings, workdir)
+                    v0, f0 = model.vertices
+                    ls = mi.ad.LargeSteps(v0, f0, settings.large_steps_lambda)
+                    opt = mi.ad.Adam(lr=settings.lr, uniform=True)
+                    opt["u"] = ls.to_differential(v0)
+                    opt_rho = mi.ad.Adam(lr=0.02)
+                    opt_rho["log_albedo"] = mi.Float(log_albedo)
+                    for j in range(seg):
+                        frac = (done + j) / max(1, n_steps - 1)
+                        opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * frac))))
+                        if step % n_batches == 0:
+                            order = rng.permutation(n_batches)
+                        b = int(order[step % n_batches])
+                        rho = dr.exp(opt_rho["log_albedo"])
+                        hist = model.render(ls.from_differential(opt["u"]), rho, batches[b],
+                                            settings.seed * 100_003 + 2 * step)
+                        h = hist.numpy().astype(np.float64).sum(axis=1)
+                        loss, alpha, grad = objective(stage, h, b, batches[b])
+                        g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
+                        dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+                        opt.step()
+                        if fit_albedo:
+                            opt_rho.step()
+                        history.append({"step": step, "stage": stage, "loss": loss,
+                                        "alpha": alpha,
+                                        "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
+                                        "seconds": time.perf_counter() - t0})
+                        step += 1
+                        bar.update(1)
+                    vertices = np.asarray(ls.from_differential(opt["u"]).numpy(),
+                                          np.float64).reshape(-1, 3)
+                    faces = np.asarray(f0.numpy(), np.int64).reshape(-1, 3)
+                    log_albedo = float(opt_rho["log_albedo"][0])
+                    done += seg
+                    if log is not None:
+                        recent = [h["loss"] for h in history[-min(seg, 2 * n_batches):]]
+                        log(f"{stage} steps {done}/{n_steps}: loss {np.mean(recent):.4f}, "
+                            f"{len(faces)} faces, {time.perf_counter() - t0:.0f} s")
+        finally:
+            bar.close()
+    return RefineResult(vertices, faces, float(np.exp(log_albedo)) if fit_albedo else None,
+                        history, {**asdict(settings), "pings": int(len(index)),
+                                  "ground": ground, "oversample": k})

@@ -21,13 +21,13 @@ OPTION_HELP = {
     "large_steps_lambda": "lambda of mi.ad.LargeSteps (larger = smoother updates)",
     "edge_length": "target edge length of the isotropic remeshing (m)",
     "remesh_every": "steps between remeshings (0: only the start mesh)",
-    "order": "quadrature points per triangle = ORDER^2",
+    "bounces": "bounces rendered (1: single scattering; 2+: object-ground multiple scattering)",
+    "surface_spacing": "the renderer's surface strata size (m)",
+    "path_samples": "the renderer's path-length quantiles per stratum",
     "pings_per_batch": "pings rendered per step",
-    "visibility_every": "visits of a batch between its shadow-ray passes",
     "fit_albedo": "fit the object's albedo relative to the ground's",
-    "ground_spacing": "quadrature cell of the ground (m)",
     "oversample": "histogram bins per sample (default: the dataset's)",
-    "seed": "order of the batches",
+    "seed": "order of the batches and the renderer's random numbers",
 }
 
 

@@ -1,0 +1,90 @@
+"""Cost of one `recon refine` step: render a batch of pings through ``mi.render`` and
+back-propagate a waveform-domain gradient to the vertices (the work of every optimiser step).
+
+    python benchmarks/bench_refine.py DATASET.h5 [--pings-per-batch 64] [--bounces 1 2]
+        [--edge-length 0.005] [--repeats 2] [--out result.json]
+
+The mesh is the dataset's ground-truth mesh remeshed to --edge-length (the size the refinement
+works at); the ground is the dataset's. Prints one JSON line per bounce count: faces, pings,
+seconds (wall, best of --repeats after one warm-up) and CPU seconds (user+sys of the process)
+for the forward render and for forward + backward. On a shared machine report CPU time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def cpu_seconds() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
+def measure(ds, mesh, bounces: int, n_pings: int, repeats: int) -> dict:
+    from recon import refine
+    from sonarsim import runtime
+    mi = runtime.mitsuba()
+    import drjit as dr
+    settings = refine.RefineSettings(bounces=bounces)
+    k = int(ds.meta.get("oversample", 20))
+    window = refine.dataset_window(ds, k)
+    index = np.linspace(0, ds.n_pings - 1, n_pings).astype(int)
+    rows = []
+    with tempfile.TemporaryDirectory() as workdir:
+        scene = refine.RenderedScene(mesh, ds, window, refine.dataset_ground(ds), settings, workdir)
+        v0, _ = scene.vertices
+        for rep in range(repeats + 1):
+            v = mi.Float(v0)
+            dr.enable_grad(v)
+            t0, c0 = time.perf_counter(), cpu_seconds()
+            hist = scene.render(v, mi.Float(1.0), index, seed=rep)
+            h = hist.numpy()
+            t1, c1 = time.perf_counter(), cpu_seconds()
+            weight = mi.TensorXf(np.ones(h.shape, np.float32))
+            dr.backward(dr.sum(hist * weight, axis=None))
+            dr.grad(v).numpy()
+            rows.append((t1 - t0, c1 - c0, time.perf_counter() - t0, cpu_seconds() - c0))
+    best = min(rows[1:], key=lambda r: r[2])
+    return {"bounces": bounces, "faces": int(len(mesh.faces)), "pings": int(n_pings),
+            "bins": int(window[2]), "forward_s": round(best[0], 3), "forward_cpu_s": round(best[1], 3),
+            "step_s": round(best[2], 3), "step_cpu_s": round(best[3], 3)}
+
+
+def main(argv=None) -> int:
+    from recon import refine
+    from sonarsim.dataset import SonarDataset
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--pings-per-batch", type=int, default=64)
+    p.add_argument("--bounces", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--edge-length", type=float, default=5e-3)
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    ds = SonarDataset.read(args.dataset)
+    if ds.gt_vertices is None:
+        p.error(f"{args.dataset} has no ground-truth mesh")
+    v, f = refine.remesh(ds.gt_vertices, ds.gt_faces, args.edge_length)
+    mesh = trimesh.Trimesh(v, f, process=False)
+    results = [measure(ds, mesh, b, args.pings_per_batch, args.repeats) for b in args.bounces]
+    for r in results:
+        print(json.dumps(r))
+    if args.out is not None:
+        from sonarsim.atomic import atomic_path
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
