@@ -176,9 +176,25 @@ def _evaluation_options(value: dict, where: str) -> dict:
         check_threshold(options.get("threshold", DEFAULT_THRESHOLD))
         if options.get("crop") is not None:
             _check_bounds6(options["crop"], "evaluate crop")
+        _check_choices(options)
     except SonarsimError as exc:
         raise InputError(f"{where}: evaluate {exc}") from None
     return options
+
+
+def _check_choices(options: dict) -> None:
+    """The evaluation's named choices against recon's own lists (``recon.evaluation``'s
+    ``check_options`` when it has one: then every rule ``evaluate_file`` applies first)."""
+    from . import evaluation, protocol_reference
+    own = getattr(evaluation, "check_options", None)
+    if callable(own):
+        own(**options)
+        return
+    for key, choices in (("protocol", evaluation.PROTOCOLS),
+                         ("mapping", tuple(protocol_reference.MAPPINGS))):
+        if key in options and options[key] not in choices:
+            raise InputError(f"{key}: choose one of {', '.join(choices)}, "
+                             f"got {options[key]!r}")
 
 
 def check_evaluate(value, where: str) -> list[tuple[str, dict]]:

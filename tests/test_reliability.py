@@ -581,6 +581,8 @@ def test_batch_absurd_sample_rate_and_grid_say_what_the_cli_says(ds_file, tmp_pa
     ("voxel_size = -1", "reconstruct[0]: voxel_size: must be a positive finite number"),
     ('method = "gd"\npings_per_iteration = 0', "reconstruct[0]: pings_per_iteration"),
     ('method = "nbp"\nn_rays = 100000000', "lower n_rays, bins_per_ping or pings_per_chunk"),
+    ('evaluate = {protocol = "nonsense"}', "evaluate protocol: choose one of exact, reference"),
+    ('evaluate = [{mapping = "x"}]', "evaluate mapping: choose one of reference, centre"),
 ])
 def test_batch_step_messages_name_the_manifests_keys(tmp_path, capsys, step, message):
     method = "" if "method" in step else 'method = "bp"\n'
