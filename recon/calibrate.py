@@ -121,13 +121,14 @@ class CalibrationResult:
     curvature: np.ndarray | None = None
     wall_s: float = 0.0
     message: str = ""
+    at_bounds: tuple = ()
 
     def as_dict(self) -> dict:
         out = {"calibration": self.calibration.as_dict(), "describe": self.calibration.describe(),
                "focus_before": self.focus_before, "focus_after": self.focus_after,
                "focus_gain": self.focus_after / self.focus_before, "free": list(self.free),
                "evaluations": len(self.history), "wall_s": self.wall_s,
-               "optimizer": self.message}
+               "optimizer": self.message, "at_bounds": list(self.at_bounds)}
         if self.curvature is not None:
             out["curvature_units"] = [UNITS[p][0] for p in self.free]
             out["curvature"] = np.asarray(self.curvature).tolist()
@@ -389,11 +390,15 @@ def fit(dataset, grid: Grid, *, free=("sound_speed", "time_offset", "rig_offset"
         if improved < 1e-6:
             break
     best = Calibration.from_vector(theta_of(x))
+    # A parameter that ends on its search bound was not determined by the focus (it kept
+    # rising): measured on the single-height real scan, see docs/differentiable.md.
+    at_bounds = tuple(p for p, xi, (lo, hi) in zip(free, x, bounds)
+                      if min(xi - lo, hi - xi) < 1e-3 * (hi - lo))
     hess = None
     if curvature:
         hess = _curvature(problem, best, idx, scale)
     return CalibrationResult(best, focus_before, problem.focus(best), free, history, hess,
-                             time.perf_counter() - t_start, message)
+                             time.perf_counter() - t_start, message, at_bounds)
 
 
 def _curvature(problem: FocusProblem, at: Calibration, idx, scale) -> np.ndarray:

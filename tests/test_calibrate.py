@@ -159,3 +159,10 @@ def test_command_recovers_the_time_offset_and_refuses_bad_options(offset_scan, t
         assert main(["calibrate", *bad]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_parameter_on_its_bound_is_reported(offset_scan, monkeypatch):
+    monkeypatch.setitem(calibrate.BOUNDS, "time_offset", 5e-6)     # the truth (-13 us) is outside
+    res = calibrate.fit(offset_scan, GRID, free="time_offset", curvature=False)
+    assert res.calibration.time_offset == pytest.approx(-5e-6, abs=1e-9)
+    assert res.at_bounds == ("time_offset",)

@@ -23,9 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--corrected", type=Path, default=None,
                         help="also write the corrected dataset (.h5): TX/RX moved, sound speed "
                              "changed, waveforms shifted by the time offset")
-    parser.add_argument("--fit", default="sound_speed,time_offset,rig_offset",
+    parser.add_argument("--fit", default="time_offset",
                         help="free parameters, comma-separated, of: " + ", ".join(GROUPS)
-                             + " (default sound_speed,time_offset,rig_offset)")
+                             + " (default time_offset: on a scan at one sonar height the focus "
+                               "does not determine sound speed and rig offset, and the time "
+                               "offset only for a known image height, docs/differentiable.md)")
     parser.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
                         help="image grid's voxel-centre bounds in metres (default: the dataset's "
                              "scene box)")
@@ -50,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import logging
+    import warnings
 
     from sonarsim import limits
 
@@ -72,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
     record = {"dataset": str(args.dataset), "pings": args.pings,
               "grid": {"bounds": grid.bounds.tolist(), "shape": list(grid.shape)},
               **result.as_dict()}
+    for name in result.at_bounds:
+        warnings.warn(f"{name} ended on its search bound: the focus kept rising, so this scan "
+                      f"does not determine it (fix the image plane at the target's height, or "
+                      f"fit fewer parameters)", stacklevel=1)
     from sonarsim.atomic import atomic_path
     with atomic_path(args.out) as tmp:
         Path(tmp).write_text(json.dumps(record, indent=1))
