@@ -43,7 +43,6 @@ from typing import Callable
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_MESHES = ROOT.parent / "shared" / "data" / "meshes"
 
 # ------------------------------------------------------------ the settings, in one place
 
@@ -104,10 +103,27 @@ class Settings:
     sweep_methods: tuple[str, ...] | None = None
     threshold_sweep: bool = True
     deconvolution: str = "wiener"     # 'wiener' or 'inr' (recon.deconvolution) for GD and NBP
+    subsample_angle: int = 1          # reconstruct from every n-th angle / height of the
+    subsample_height: int = 1         # simulated scan (the dataset is not re-simulated)
 
     @property
     def n_poses(self) -> int:
         return len(range(0, 360, self.angle_step)) * len(range(0, 150, self.height_step))
+
+    @property
+    def n_pings(self) -> int:
+        """Pings each reconstruction sees (after ``subsample_*``)."""
+        return (len(range(0, 360, self.angle_step * self.subsample_angle))
+                * len(range(0, 150, self.height_step * self.subsample_height)))
+
+    def data_digest(self) -> str:
+        """Digest of what the simulation depends on only (poses, fidelity, the module-level
+        simulation constants): the dataset's file name. Solver, grid and evaluation settings
+        never re-simulate."""
+        key = json.dumps({"angle_step": self.angle_step, "height_step": self.height_step,
+                          "paths_per_pose": self.paths_per_pose, "simulation": SIMULATION,
+                          "pulses": PULSES}, sort_keys=True, default=str)
+        return hashlib.sha1(key.encode()).hexdigest()[:8]
 
     def digest(self) -> str:
         """Short digest of these settings and the module-level simulation constants: part of
@@ -212,14 +228,15 @@ def scene_spec(name: str, out: Path, source: str = "auto") -> tuple[str, str] | 
     The shared meshes are the reference's GT meshes in the rig frame at the reference's scale,
     used as they are (``fit = false``) on the reference's ground plane (0.4 x 0.4 m, albedo 1).
     """
-    mesh = SHARED_MESHES / f"{name}.obj"
+    from sonarsim import data
+    mesh = data.root() / "meshes" / f"{name}.obj"
     if source in ("auto", "shared") and mesh.is_file():
         toml = out / "data" / f"{name}.toml"
         toml.parent.mkdir(parents=True, exist_ok=True)
         text = f'name = "{name}"\nground = true\n\n[[object]]\nmesh = "{mesh}"\nfit = false\n'
         if not toml.is_file() or toml.read_text() != text:
             toml.write_text(text)
-        return str(toml), f"shared mesh {mesh.name}"
+        return str(toml), f"shipped reference mesh {mesh.name}"
     if source == "shared":
         raise SystemExit(f"scene {name!r}: {mesh} not found (--scene-source shared)")
     if name in ("cube", "cylinder"):
@@ -258,7 +275,7 @@ def ensure_dataset(cell: Cell, settings: Settings, out: Path, source: str = "aut
     if found is None:
         raise SystemExit(f"scene {cell.shape}: no shared mesh and no shipped scene")
     spec_text, src = found
-    path = out / "data" / f"{cell.dataset_name}_{settings.digest()}.h5"
+    path = out / "data" / f"{cell.dataset_name}_{settings.data_digest()}.h5"
     path.parent.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -270,14 +287,34 @@ def ensure_dataset(cell: Cell, settings: Settings, out: Path, source: str = "aut
     return path, notes, src
 
 
+def subsampled(ds, settings: Settings):
+    """Every ``subsample_angle``-th angle and ``subsample_height``-th height of a dataset
+    simulated with :func:`cylindrical_poses` (pings ordered angle-fastest, 360 / angle_step
+    per height)."""
+    if settings.subsample_angle == 1 and settings.subsample_height == 1:
+        return ds
+    per_height = len(range(0, 360, settings.angle_step))
+    idx = np.arange(ds.n_pings)
+    keep = (((idx % per_height) % settings.subsample_angle == 0)
+            & ((idx // per_height) % settings.subsample_height == 0))
+    return ds.select(np.flatnonzero(keep))
+
+
 def ensure_deconvolved(data: Path, settings: Settings) -> Path:
     """The pulse-deconvolved dataset of ``data`` (``recon deconvolve`` with
-    ``settings.deconvolution``), made once beside it and reused."""
+    ``settings.deconvolution``), made once beside it and reused. Wiener filters each ping
+    on its own: the whole scan is deconvolved (seconds) and subsampled later; the INR is
+    fitted to the subsampled pings only (its cost grows with pings)."""
     from recon.deconvolution import deconvolve
     from sonarsim.dataset import SonarDataset
-    path = data.with_name(f"{data.stem}_pd-{settings.deconvolution}.h5")
+    sub = (settings.deconvolution != "wiener"
+           and (settings.subsample_angle, settings.subsample_height) != (1, 1))
+    tag = f"_sub{settings.subsample_angle}x{settings.subsample_height}" if sub else ""
+    path = data.with_name(f"{data.stem}{tag}_pd-{settings.deconvolution}.h5")
     if not path.is_file():     # written atomically: an existing file is complete
-        deconvolve(SonarDataset.read(data), settings.deconvolution, progress=False).write(path)
+        ds = SonarDataset.read(data)
+        deconvolve(subsampled(ds, settings) if sub else ds, settings.deconvolution,
+                   progress=False).write(path)
     return path
 
 
@@ -316,11 +353,18 @@ def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: S
     from recon.grid import Grid
     from sonarsim.dataset import SonarDataset, Volume
     m = METHOD_BY_KEY[method]
+    stages = {}
+    t0 = time.perf_counter()
     data, notes, src = ensure_dataset(cell, settings, out, source)
+    stages["dataset_s"] = time.perf_counter() - t0
     volume_path = out / "volumes" / f"{cell.name}_{digest}.h5"
     volume_path.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
     fitted = ensure_deconvolved(data, settings) if m.deconvolved else data
+    stages["deconvolve_s"] = time.perf_counter() - t0
     ds = SonarDataset.read(fitted)
+    if ds.n_pings != settings.n_pings:     # an INR-deconvolved subset is already subsampled
+        ds = subsampled(ds, settings)
     elapsed = None
     if volume_path.is_file():
         vol = Volume.read(volume_path)
@@ -342,6 +386,7 @@ def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: S
               "mc_snr_db": ds.meta.get("mc_snr_db"), "n_pings": int(ds.n_pings),
               "notes": notes, **evaluate_both(volume_path, gt, settings)}
     result["evaluate_s"] = time.perf_counter() - t0
+    result["stages_s"] = {**stages, "solve_s": elapsed, "evaluate_s": result["evaluate_s"]}
     from recon.evaluation import json_safe
     record.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(record) as tmp:
@@ -527,13 +572,17 @@ def parse_args(argv):
     ap.add_argument("--quick", action="store_true", help="the small CI size (SIZES['quick'])")
     ap.add_argument("--shapes", default=",".join(SHAPES))
     ap.add_argument("--scene-source", choices=("auto", "shared", "shipped"), default="auto",
-                    help="auto: shared meshes where present, else shipped procedural scenes")
+                    help="shared: the shipped reference GT meshes (sonarsim.data); shipped: the "
+                         "procedural cube and cylinder; auto: reference meshes where present")
     ap.add_argument("--methods", default=None,
                     help=f"comma list of {list(METHOD_BY_KEY)} (default: all available)")
     ap.add_argument("--no-sweep", action="store_true", help="only the 20 kHz / 20 dB cells")
     ap.add_argument("--angle-step", type=int)
     ap.add_argument("--height-step", type=int)
     ap.add_argument("--paths-per-pose", type=int)
+    ap.add_argument("--subsample", type=int, nargs=2, metavar=("ANGLES", "HEIGHTS"),
+                    help="reconstruct from every ANGLES-th angle and HEIGHTS-th height of the "
+                         "simulated scan (the dataset is simulated once at its own size)")
     ap.add_argument("--shape", type=int, nargs=3)
     ap.add_argument("--gd-iterations", type=int)
     ap.add_argument("--nbp-iterations", type=int)
@@ -565,6 +614,10 @@ def settings_from(args) -> Settings:
         overrides["threshold_sweep"] = False
     if args.shape:
         overrides["shape"] = tuple(args.shape)
+    if args.subsample:
+        if min(args.subsample) < 1:
+            raise SystemExit("--subsample: both steps must be >= 1")
+        overrides["subsample_angle"], overrides["subsample_height"] = args.subsample
     return replace(settings, **overrides)
 
 
@@ -599,7 +652,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = (f"{'quick' if args.quick else 'default'} size (digest {settings.digest()}): "
                f"cylindrical scan, every {settings.angle_step} of 360 angles × every "
                f"{settings.height_step} of 150 heights = {settings.n_poses} poses (reference "
-               f"54 000), paths/pose {settings.paths_per_pose or 'simulator default (mc_snr_db)'}, "
+               f"54 000), reconstructed from {settings.n_pings} pings (every "
+               f"{settings.subsample_angle} angle(s) × {settings.subsample_height} height(s)), paths/pose {settings.paths_per_pose or 'simulator default (mc_snr_db)'}, "
                f"single scattering, grid {'×'.join(map(str, settings.shape))}, GD "
                f"{settings.gd_iterations} / NBP {settings.nbp_iterations} iterations, "
                f"{settings.samples} surface and {settings.volume_samples} volume samples")
@@ -628,9 +682,17 @@ def main(argv: list[str] | None = None) -> int:
         {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
          "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,
          "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
-         "peak_rss_mb": peak_mb}), indent=1, allow_nan=False, default=str))
+         "peak_rss_mb": peak_mb, "n_pings": settings.n_pings}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())
-    print(f"total {total:.0f} s, peak RSS {peak_mb:.0f} MB; outputs in {out}")
+    stage_totals = {}
+    for r in results:      # cells loaded from an earlier run report their own stage times
+        for k, v in (r.get("stages_s") or {}).items():
+            stage_totals[k] = stage_totals.get(k, 0.0) + (v or 0.0)
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    print("stages (s, summed over cells): "
+          + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in stage_totals.items()))
+    print(f"total {total:.0f} s wall, {usage.ru_utime + usage.ru_stime:.0f} s CPU (user+sys) "
+          f"in this process, peak RSS {peak_mb:.0f} MB; outputs in {out}")
     return 0
 
 
