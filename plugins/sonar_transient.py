@@ -107,8 +107,9 @@ class SonarTransientIntegrator(mi.SamplingIntegrator):
             raise ValueError("sonar_transient: accumulator must be 'float64' or 'float32', "
                              f"got {accumulator!r}")
         self.float64 = accumulator == "float64"
-        # 'mode' is the former name of 'amplitude'
-        self.amplitude = str(props.get("amplitude", props.get("mode", "intensity")))
+        if "mode" in props:
+            raise ValueError("sonar_transient: the property 'mode' is now called 'amplitude'")
+        self.amplitude = str(props.get("amplitude", "intensity"))
         if self.amplitude not in AMPLITUDES:
             raise ValueError(f"sonar_transient: amplitude must be one of {AMPLITUDES}, "
                              f"got {self.amplitude!r}")

@@ -420,7 +420,7 @@ def _plan(scene, poses, s: RenderSettings, box) -> _Plan:
         box = scene_box(scene)
     window = path_window(scene, poses, fs=s.fs, oversample=s.oversample,
                          sound_speed=s.sound_speed, path_range=s.path_range, box=box)
-    meta = {"integrator": "sonar_transient", "mode": s.amplitude, "amplitude_model": s.amplitude,
+    meta = {"integrator": "sonar_transient", "amplitude_model": s.amplitude,
             "bounce1": s.bounce1 or "surface",
             **({"surface_spacing": float(s.surface_spacing)}
                if s.surface_spacing is not None else {}),

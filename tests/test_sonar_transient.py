@@ -663,6 +663,13 @@ def test_driver_rejects_bad_input(mi, box_on_ground, kwargs):
         render_poses(scene, _poses(2), **{"paths_per_pose": 10, "progress": False, **kwargs})
 
 
+def test_plugin_refuses_the_old_mode_property(mi):
+    """'mode' was renamed 'amplitude' (issue 22 item 6: no compatibility aliases)."""
+    with pytest.raises(Exception, match="'mode' is now called 'amplitude'"):
+        mi.load_dict({"type": "sonar_transient", "mode": "pressure"})
+    assert mi.load_dict({"type": "sonar_transient", "amplitude": "pressure"}).amplitude == "pressure"
+
+
 def test_driver_default_window_is_the_scene_box(mi):
     """Without box or path_range the window covers the scene's bounding box (here a flat plane)."""
     from sonarsim.geometry import Poses, SceneBox, crop_window
