@@ -66,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
     if args.max_evaluations < 1:
         raise InputError(f"--max-evaluations must be >= 1, got {args.max_evaluations}")
     ds = _common.load_dataset(args)
-    grid = _common.grid_from_args(args, ds, bytes_per_voxel=calibrate.BYTES_PER_VOXEL)
+    grid = _common.grid_from_args(args, ds, bytes_per_voxel=calibrate.BYTES_PER_VOXEL,
+                                  volume_out=False)
     log = None if args.no_progress else logging.getLogger("recon.calibrate").info
     result = calibrate.fit(ds, grid, free=free, upsample=args.upsample,
                            per_ping_sound_speed=not args.mean_sound_speed,
