@@ -68,11 +68,14 @@ def _validate(grid, band_db, taper, eps, reference_point):
 
 
 def check_options(grid: Grid, dataset=None, *, reference_point=None, band_db: float = -20.0,
-                  taper: float = 0.25, eps: float = 1e-6, **_ignored) -> None:
+                  taper: float = 0.25, eps: float = 1e-6, patches=1, **_ignored) -> None:
     """The checks the command line, ``sonarsim batch`` and :func:`solve` make before any work
     (InputError, one line): the option ranges and the grid's memory."""
     from .checks import check_grid_memory
     _validate(grid, band_db, taper, eps, reference_point)
+    if max(_patch_counts(patches)) > 1 and reference_point is not None:
+        raise InputError("patches: each block has its own reference point; "
+                         "give either patches or reference_point")
     check_grid_memory(grid, BYTES_PER_VOXEL, what="polar formatting")
 
 
@@ -252,9 +255,36 @@ def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     return image.astype(np.complex64), info
 
 
+def _patch_counts(patches) -> tuple[int, int, int]:
+    counts = (patches,) * 3 if np.ndim(patches) == 0 else tuple(patches)
+    if len(counts) != 3 or not all(isinstance(c, (int, np.integer)) and not isinstance(c, bool)
+                                   and 1 <= c <= 16 for c in counts):
+        raise InputError(f"patches: must be an integer in [1, 16] (blocks per axis) or three "
+                         f"of them, got {patches!r}")
+    return tuple(int(c) for c in counts)
+
+
+def patch_grids(grid: Grid, patches) -> list[tuple[tuple[slice, slice, slice], Grid]]:
+    """The grid cut into ``patches`` blocks per axis (an int, or one per axis; as equal as
+    the voxel counts allow): [(index slices into the grid, the block's own Grid)], every
+    voxel in exactly one block."""
+    axes = grid.axes()
+    cuts = [np.array_split(np.arange(n), min(c, n))
+            for n, c in zip(grid.shape, _patch_counts(patches))]
+    out = []
+    for ix in cuts[0]:
+        for iy in cuts[1]:
+            for iz in cuts[2]:
+                idx = (ix, iy, iz)
+                bounds = [[axes[a][i[0]], axes[a][i[-1]]] for a, i in enumerate(idx)]
+                out.append((tuple(slice(i[0], i[-1] + 1) for i in idx),
+                            Grid(np.asarray(bounds), tuple(len(i) for i in idx))))
+    return out
+
+
 def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
           taper: float = 0.25, eps: float = 1e-6, per_ping_sound_speed: bool = True,
-          progress: bool = True):
+          progress: bool = True, patches: int = 1):
     """Polar-format reconstruction of ``dataset`` on ``grid``.
 
     reference_point: [3] metres, the phase (motion-compensation) centre; default the grid
@@ -262,12 +292,32 @@ def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     band_db: keep the frequencies whose pulse power is within this many dB of the peak.
     taper: Tukey ratio of the window over the band (0 = none, 1 = Hann).
     eps: finufft tolerance. per_ping_sound_speed: as in backprojection.
+    patches: sub-patch processing: the grid is cut into this many blocks per axis (an int or
+        one per axis) and each
+        block imaged with its own reference point (its centre), so the far-field error grows
+        with the distance from the nearest block centre rather than from the grid's centre
+        (cost: one non-uniform FFT of all samples per block). Excludes ``reference_point``.
     Returns a :class:`~sonarsim.dataset.Volume` (complex64 [nx, ny, nz], method 'pfa').
     """
     from sonarsim.dataset import Volume
-    image, info = pfa(dataset, grid, reference_point=reference_point, band_db=band_db,
-                      taper=taper, eps=eps, per_ping_sound_speed=per_ping_sound_speed,
-                      progress=progress)
+    counts = _patch_counts(patches)
+    if max(counts) > 1 and reference_point is not None:
+        raise InputError("patches: each block has its own reference point; "
+                         "give either patches or reference_point")
+    if max(counts) == 1:
+        image, info = pfa(dataset, grid, reference_point=reference_point, band_db=band_db,
+                          taper=taper, eps=eps, per_ping_sound_speed=per_ping_sound_speed,
+                          progress=progress)
+    else:
+        _validate(grid, band_db, taper, eps, None)
+        image = np.zeros(grid.shape, dtype=np.complex64)
+        blocks = patch_grids(grid, patches)
+        for index, block in blocks:
+            image[index], info = pfa(dataset, block, band_db=band_db, taper=taper, eps=eps,
+                                     per_ping_sound_speed=per_ping_sound_speed,
+                                     progress=progress)
+        info = {**info, "reference_point": None, "patches": list(counts),
+                "n_blocks": len(blocks)}
     params = {"band_db": float(band_db), "taper": float(taper), "eps": float(eps),
               "per_ping_sound_speed": bool(per_ping_sound_speed),
               "n_pings": int(len(dataset.waveforms)), **info}

@@ -197,3 +197,26 @@ def test_cli_round_trip_and_errors(points_ds, tmp_path, capsys):
     assert len(err) == 1 and "taper" in err[0]
     assert not (tmp_path / "x.h5").exists()
     assert main(["pfa", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "y.h5")]) == 2
+
+
+def test_sub_patches_refocus_a_point_far_from_the_grid_centre():
+    """patches: each block imaged about its own centre. A point 12 cm from the centre of a
+    one-block grid is defocused (peak < 0.5, the far-field limit above); with 3 blocks along
+    x the block containing it is centred 1.2 cm from it and the peak is back near 1, at the
+    right voxel. Every voxel lies in exactly one block."""
+    p = np.array([0.12, 0.0, 0.1])
+    ds = synthetic.point_dataset([p], n_pings=120, heights=HEIGHTS, sound_speed=C)
+    g = Grid(np.array([[-0.16, 0.16], [-0.012, 0.012], [0.088, 0.112]]), (81, 7, 7))
+    one = np.abs(pfa.solve(ds, g, progress=False).volume)
+    three = pfa.solve(ds, g, progress=False, patches=(3, 1, 1))
+    mag = np.abs(three.volume)
+    assert one.max() < 0.5
+    assert mag.max() == pytest.approx(1.0, rel=0.1)
+    assert _within_one_voxel(np.unravel_index(np.argmax(mag), mag.shape), g, p)
+    blocks = pfa.patch_grids(g, 3)
+    cover = np.zeros(g.shape, int)
+    for index, _ in blocks:
+        cover[index] += 1
+    assert len(blocks) == 27 and np.all(cover == 1)
+    with pytest.raises(InputError, match="patches"):
+        pfa.solve(ds, g, progress=False, patches=2, reference_point=p)

@@ -13,6 +13,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common.add_dataset_and_grid(parser)
     parser.add_argument("--reference-point", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="phase (motion-compensation) centre in metres (default: grid centre)")
+    parser.add_argument("--patches", type=int, default=1, metavar="N",
+                        help="sub-patch processing: N blocks per axis, each imaged about its "
+                             "own centre (removes the far-field defocus away from the grid "
+                             "centre; N³ non-uniform FFTs of all samples; default 1)")
     parser.add_argument("--band-db", type=float, default=-20.0,
                         help="keep frequencies whose pulse power is within this many dB of "
                              "the peak (default -20)")
@@ -28,9 +32,9 @@ def run(args: argparse.Namespace) -> int:
     ds = _common.load_dataset(args)
     grid = _common.grid_from_args(args, ds, bytes_per_voxel=pfa.BYTES_PER_VOXEL)
     pfa.check_options(grid, ds, reference_point=args.reference_point, band_db=args.band_db,
-                      taper=args.taper, eps=args.eps)
+                      taper=args.taper, eps=args.eps, patches=args.patches)
     vol = pfa.solve(ds, grid, reference_point=args.reference_point, band_db=args.band_db,
-                    taper=args.taper, eps=args.eps,
+                    taper=args.taper, eps=args.eps, patches=args.patches,
                     per_ping_sound_speed=not args.mean_sound_speed,
                     progress=not args.no_progress)
     return _common.write_volume(vol, args, f"polar formatting of {ds.n_pings} pings on "
