@@ -71,8 +71,6 @@ LANES_PER_LAUNCH = 1 << 21     # voxel-ping lanes per kernel (AD replay keeps ~3
 # Per voxel: the float64 centre (24), the complex128 image (16), its float32 copies and the
 # ∂S/∂I weights (16), the voxel's part of a launch's outputs (8).
 BYTES_PER_VOXEL = 24 + 16 + 16 + 8
-# A launch's lanes: ~40 float64/float32 values each kept for the AD replay.
-BYTES_PER_LANE = 256
 
 
 @dataclass(frozen=True)
@@ -192,11 +190,10 @@ class FocusProblem:
         self.fs = float(dataset.fs)
         self.start = float(getattr(dataset, "start_sample", 0) or 0)
         frames = sonar_frames(dataset)
-        # Geometry and delays in float64: in float32 the delay's round-off (~1e-4 upsampled
-        # samples at 1 000 samples) moves a few (ping, voxel) pairs across a kink of the
-        # piecewise-linear interpolation, whose slope then differs from the float64 model's by
-        # up to half the signal's second difference, enough to move ∂S/∂θ by a few per cent
-        # (∂S/∂θ is a residual of terms ~100x larger). The signals stay float32.
+        # Geometry and delays in float64: ∂S/∂θ is a residual of per-pair terms ~100x larger,
+        # and the float32 round-off of a delay (~1e-4 upsampled samples at 1 000 samples) moved
+        # it by a few per cent (measured with linear interpolation against float64 central
+        # differences). The signals stay float32.
         f64 = lambda a: m.Float64(np.ascontiguousarray(a, dtype=np.float64))  # noqa: E731
         self.tx = [f64(dataset.tx[:, j]) for j in range(3)]
         self.rx = [f64(dataset.rx[:, j]) for j in range(3)]
