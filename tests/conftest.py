@@ -77,3 +77,10 @@ def point_target_grid():
     """A 21 x 21 x 21 grid of 2 mm voxels, x, y in [-0.02, 0.02] m, z in [0.08, 0.12] m."""
     from recon.grid import Grid
     return Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (21, 21, 21))
+
+
+def within_one_voxel(index, grid, point) -> bool:
+    """Whether voxel ``index`` of ``grid`` (:class:`recon.grid.Grid`) has its centre within one
+    voxel pitch of ``point`` (m) on every axis: a focus test's tolerance."""
+    import numpy as np
+    return bool(np.all(np.abs(grid.position_of(index) - np.asarray(point)) <= grid.spacing + 1e-12))

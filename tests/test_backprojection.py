@@ -4,6 +4,7 @@ import pytest
 
 from recon import backprojection as bp
 from recon import straightforward, synthetic
+from conftest import within_one_voxel as _within_one_voxel
 from recon.grid import Grid
 from sonarsim import signals
 from sonarsim.dataset import SonarDataset, Volume
@@ -26,10 +27,6 @@ def grid3d():
 
 def _peak(vol, grid):
     return np.unravel_index(np.argmax(np.abs(vol)), grid.shape)
-
-
-def _within_one_voxel(index, grid, point):
-    return np.all(np.abs(grid.position_of(index) - point) <= grid.spacing + 1e-12)
 
 
 def test_point_scatterer_focuses_within_one_voxel(point_ds, grid3d):

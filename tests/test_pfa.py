@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from recon import pfa, straightforward, synthetic
+from conftest import within_one_voxel as _within_one_voxel
 from recon.grid import Grid
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
@@ -34,10 +35,6 @@ def _local_peak(mag, grid, point, radius=4):
     sub = mag[sl]
     j = np.unravel_index(np.argmax(sub), sub.shape)
     return tuple(s.start + q for s, q in zip(sl, j)), float(sub.max())
-
-
-def _within_one_voxel(index, grid, point):
-    return bool(np.all(np.abs(grid.position_of(index) - point) <= grid.spacing + 1e-12))
 
 
 def test_point_targets_focus_within_one_voxel(points_ds, grid3d):
