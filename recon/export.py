@@ -393,7 +393,8 @@ def write_slices(directory: str | Path, magnitude: np.ndarray, bounds, axis: int
     Grey level = round(255 * normalised magnitude); rows/columns as in :func:`mip`
     (highest row coordinate at the top of the picture). ``slices.json`` lists the world
     coordinate (m) of each slice and the pixel extents. Each file is written atomically and
-    the index last, so an interrupted run leaves no partial picture and no index.
+    the index last, so an interrupted run leaves no partial picture and no index; a failure
+    part-way (a full disk) removes the slices this call had written.
     """
     from PIL import Image
 
@@ -403,13 +404,18 @@ def write_slices(directory: str | Path, magnitude: np.ndarray, bounds, axis: int
     u, v = mip_axes(axis)
     name = AXIS_NAMES[axis]
     written = []
-    for k, c in enumerate(coords):
-        img = np.take(magnitude, k, axis=axis).T[::-1]
-        grey = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
-        p = directory / f"slice_{name}_{k:04d}.png"
-        with atomic_path(p) as tmp:
-            Image.fromarray(grey, mode="L").save(tmp, format="PNG")
-        written.append(p)
+    try:
+        for k, c in enumerate(coords):
+            img = np.take(magnitude, k, axis=axis).T[::-1]
+            grey = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+            p = directory / f"slice_{name}_{k:04d}.png"
+            with atomic_path(p) as tmp:
+                Image.fromarray(grey, mode="L").save(tmp, format="PNG")
+            written.append(p)
+    except BaseException:        # a full disk or Ctrl-C: no incomplete set at the final paths
+        for p in written:
+            p.unlink(missing_ok=True)
+        raise
     meta = {"axis": name, "coordinates_m": [float(c) for c in coords],
             "files": [p.name for p in written],
             "u_axis": AXIS_NAMES[u], "u_range_m": pixel_extent(bounds, magnitude.shape, u),

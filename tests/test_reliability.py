@@ -1056,3 +1056,27 @@ def test_batch_and_library_share_the_solver_checks():
             gradient_descent.check_options(grid, pings_per_iteration=2000)
     finally:
         limits.set_max_memory(None)
+
+
+# --- coordinator: export --slices on a full disk (#23 item 2) ---------------------------------
+
+def test_slices_interrupted_by_a_full_disk_leave_no_file_at_a_final_path(tmp_path, monkeypatch):
+    """The third slice's write fails (ENOSPC): the two written before are removed, no index."""
+    import errno
+    from PIL import Image
+    from recon import export
+
+    real_save, calls = Image.Image.save, []
+
+    def save(self, fp, *args, **kwargs):
+        calls.append(fp)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_save(self, fp, *args, **kwargs)
+
+    monkeypatch.setattr(Image.Image, "save", save)
+    magnitude = np.random.default_rng(0).random((4, 5, 6))
+    from sonarsim.errors import WriteError
+    with pytest.raises(WriteError, match="slice_z_0002.png: no space left"):
+        export.write_slices(tmp_path / "s", magnitude, [[0, 1], [0, 1], [0, 1]])
+    assert len(calls) == 3 and sorted(p.name for p in (tmp_path / "s").iterdir()) == []
