@@ -872,13 +872,13 @@ def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
 def test_ctrl_c_during_a_run_is_one_line_and_leaves_no_output(tmp_path):
     import os
     import signal
-    ds = synthetic.point_dataset([POINT], n_pings=2000, heights=(0.05, 0.15))
+    ds = synthetic.point_dataset([POINT], n_pings=4000, heights=(0.05, 0.15))
     ds.write(tmp_path / "d.h5")
     out = tmp_path / "v.h5"
     env = dict(os.environ, SONARSIM_PROGRESS_INTERVAL="0.05")
     proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "backproject",
-                             str(tmp_path / "d.h5"), "--out", str(out), "--shape", "60", "60",
-                             "60", "--threads", "1"], stdout=subprocess.PIPE,
+                             str(tmp_path / "d.h5"), "--out", str(out), "--shape", "120", "120",
+                             "120", "--threads", "1"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     try:
         line = proc.stderr.readline()           # the first progress line: the run is under way
