@@ -518,3 +518,28 @@ def test_reference_views_read_60_as_radians_like_pyrender(mi):
     mse = np.mean((test - 0.1) ** 2)
     assert views.psnr(np.full((2, 2), 0.1), test, data_range=None) == pytest.approx(
         10 * np.log10(0.3 ** 2 / mse))
+
+
+def test_comparison_figure_has_gt_mips_a_colour_bar_and_marks_the_best(tmp_path):
+    """recon.figures.comparison: a GT row whose MIP panels show the GT occupancy (not empty),
+    one shared colour bar, titles naming method and view, the best IoU starred on the better
+    volume's row."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from recon import figures
+    from sonarsim.dataset import Volume
+    good = Volume(cube_volume(), BOX, "bp")
+    noisy = Volume(cube_volume() + 1.5 * np.random.default_rng(0).random((N, N, N)), BOX, "gd")
+    fig = figures.comparison([good, noisy], cube_mesh(), labels=["BP", "GD"], threshold=0.5)
+    axes = fig.axes
+    images = [ax for ax in axes if ax.get_images()]
+    gt_top = images[0].get_images()[0].get_array()
+    assert np.asarray(gt_top).max() == 1.0 and np.asarray(gt_top).min() == 0.0   # GT MIP drawn
+    assert any(ax.get_label() == "<colorbar>" for ax in axes)
+    titles = [ax.get_title() for ax in axes]
+    assert "BP — top view (MIP along z)" in titles and "GD — side view (MIP along y)" in titles
+    bp_title = next(t for t in titles if t.startswith("BP: surface"))
+    gd_title = next(t for t in titles if t.startswith("GD: surface"))
+    assert "IoU 1.000 ★" in bp_title and "★" not in gd_title.split("Chamfer")[0]
+    out = figures.save(fig, tmp_path / "cmp.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
