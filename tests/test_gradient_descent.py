@@ -160,7 +160,7 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     assert (sim.lambertian, sim.occlusion_scale, sim.sparsity, sim.init) == (True, 500.0, 1.0, "random")
     d = gd.settings_for(None)
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units, d.prior_units) == (
-        False, 0.0, 6.0, "bp", "relative", "energy")
+        False, 0.0, 2.0, "bp", "relative", "energy")
     n = nbp.settings_for(None)                     # the network keeps the full model, no priors
     assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (True, 500.0, 0.0, 500)
     with pytest.raises(InputError):

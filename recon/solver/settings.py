@@ -38,7 +38,7 @@ class SolverSettings(NetworkSettings):
     incoherent: bool = False
     lambertian: bool = False       # voxels: the linear model + sparsity (measured,
     occlusion_scale: float = 0.0   # docs/reconstruction.md); NETWORK_DEFAULTS: the full model
-    sparsity: float = 6.0
+    sparsity: float = 2.0
     prior_units: str = "energy"    # voxels: prior weights × the targets' mean energy (scale-free)
     smoothness: float = 0.0
     phase: float = 0.0
@@ -174,7 +174,7 @@ PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
                pings_per_iteration=5, pings_per_chunk=0, bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
-               sparsity=6.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
+               sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
                reg_start=200),
     "nbp": dict(NETWORK_DEFAULTS, iterations=1000, pings_per_iteration=5, pings_per_chunk=5,
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
