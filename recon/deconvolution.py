@@ -453,14 +453,11 @@ def inr(waveforms, pulse, settings: INRSettings | None = None, progress: bool = 
     its amplitude is a reflectivity in the waveform's units per unit pulse amplitude.
     """
     from sonarsim.progress import progress_bar
-    from sonarsim import limits
     st = settings or INRSettings()
     st.validate()
     s, p = _check_inputs(waveforms, pulse)
     n_pings, n_t = s.shape
-    need, detail = replace(st, pings_per_inr=min(st.pings_per_inr, n_pings)).memory_estimate(n_t)
-    limits.check_memory(need, "INR deconvolution", detail,
-                        "use fewer --pings-per-inr, a smaller --width or fewer --n-levels")
+    check_inr_memory(st, n_pings, n_t)
     scale = float(np.max(np.abs(s)))
     if not scale > 0:
         raise InputError("waveforms: all zero, nothing to deconvolve")
@@ -490,6 +487,15 @@ def inr(waveforms, pulse, settings: INRSettings | None = None, progress: bool = 
 
 
 # ---- datasets ------------------------------------------------------------------------------
+
+def check_inr_memory(st: INRSettings, n_pings: int, n_samples: int) -> None:
+    """Refuse (one line) an INR fit whose per-batch memory estimate exceeds the limit."""
+    from sonarsim import limits
+    need, detail = replace(st, pings_per_inr=min(st.pings_per_inr, n_pings)).memory_estimate(
+        n_samples)
+    limits.check_memory(need, "INR deconvolution", detail,
+                        "use fewer --pings-per-inr, a smaller --width or fewer --n-levels")
+
 
 def check_inr_time(n_pings: int, n_samples: int, settings: INRSettings,
                    max_hours: float | None) -> float:
@@ -529,9 +535,11 @@ def deconvolve(dataset, method: str = "inr", *, wiener_lambda: float | None = No
     if getattr(dataset, "waveform_kind", "real") != "real":
         raise InputError(f"dataset waveforms are already '{dataset.waveform_kind}', "
                          "deconvolve the original dataset")
-    if method == "inr":
-        check_inr_time(dataset.n_pings, dataset.n_samples, inr_settings or INRSettings(),
-                       max_hours)
+    if method == "inr":       # memory first, then time: the estimate is logged only for a run
+        st = inr_settings or INRSettings()     # that goes ahead
+        st.validate()
+        check_inr_memory(st, dataset.n_pings, dataset.n_samples)
+        check_inr_time(dataset.n_pings, dataset.n_samples, st, max_hours)
     if method == "wiener":
         sig, info = wiener(dataset.waveforms, dataset.pulse, wiener_lambda)
     else:
