@@ -24,8 +24,15 @@ VOLUME_BYTES_PER_VOXEL = 8
 def add_dataset_and_grid(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) written by sonarsim")
     parser.add_argument("--out", type=Path, required=True, help="output volume (.h5)")
+    add_grid_and_pings(parser)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_grid_and_pings(parser: argparse.ArgumentParser, what: str = "voxel-centre") -> None:
+    """--bounds, --shape, --voxel-size (the grid rule: recon.grid.grid_from_options) and
+    --pings; ``what`` names the grid in the help (e.g. "image grid's voxel-centre")."""
     parser.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
-                        help="voxel-centre bounds in metres (default: the dataset's scene box, "
+                        help=f"{what} bounds in metres (default: the dataset's scene box, "
                              "else the simulator's box x,y in [-0.2,0.2], z in [0,0.3])")
     parser.add_argument("--shape", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
                         help="voxels per axis (default: from --voxel-size)")
@@ -33,7 +40,6 @@ def add_dataset_and_grid(parser: argparse.ArgumentParser) -> None:
                         help=f"voxel pitch in metres when --shape is not given (default {DEFAULT_VOXEL_SIZE})")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="use only this slice of the pings (e.g. ':43200' = the first 43 200)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def parse_slice(text: str | None, n: int) -> np.ndarray | None:

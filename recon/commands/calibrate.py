@@ -16,7 +16,6 @@ OUTPUTS = ("out", "corrected")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..calibrate import GROUPS
-    from ..grid import DEFAULT_VOXEL_SIZE
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5), e.g. a real scan")
     parser.add_argument("--out", type=Path, required=True,
                         help="the calibration found, with the focus before/after (.json)")
@@ -28,16 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              + " (default time_offset: on a scan at one sonar height the focus "
                                "does not determine sound speed and rig offset, and the time "
                                "offset only for a known image height, docs/differentiable.md)")
-    parser.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
-                        help="image grid's voxel-centre bounds in metres (default: the dataset's "
-                             "scene box)")
-    parser.add_argument("--shape", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
-                        help="voxels per axis (default: from --voxel-size)")
-    parser.add_argument("--voxel-size", type=float, default=DEFAULT_VOXEL_SIZE,
-                        help=f"voxel pitch in metres when --shape is not given "
-                             f"(default {DEFAULT_VOXEL_SIZE})")
-    parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
-                        help="use only this slice of the pings")
+    _common.add_grid_and_pings(parser, what="image grid's voxel-centre")
     parser.add_argument("--upsample", type=int, default=4,
                         help="FFT upsampling of the matched-filtered signal (default 4)")
     parser.add_argument("--mean-sound-speed", action="store_true",
