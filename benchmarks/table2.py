@@ -137,7 +137,7 @@ class Settings:
 SIZES = {
     "default": Settings(angle_step=1, height_step=1, paths_per_pose=None, shape=(125, 125, 94),
                         gd_iterations=1000, nbp_iterations=1000),
-    "quick": Settings(angle_step=10, height_step=10, paths_per_pose=300, shape=(25, 25, 19),
+    "quick": Settings(angle_step=20, height_step=15, paths_per_pose=300, shape=(25, 25, 19),
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
                       view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False),
 }
