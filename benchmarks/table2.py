@@ -508,10 +508,12 @@ def write_csv(path: Path, results) -> None:
 
 
 def write_figure(path: Path, results, methods) -> None:
+    """One row per shape: the GT render, then per method its MIP over y and the render of its
+    τ surface (the panels of recon.figures, as recon compare draws them)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from recon import export, metrics, views
+    from recon import export, figures, metrics, views
     from sonarsim.dataset import Volume
 
     main = main_rows(results)
@@ -521,12 +523,13 @@ def write_figure(path: Path, results, methods) -> None:
     n_cols = 1 + 2 * len(methods)
     fig, axs = plt.subplots(len(shapes), n_cols, figsize=(2.3 * n_cols, 2.5 * len(shapes)),
                             squeeze=False, constrained_layout=True)
+    for ax in axs.ravel():
+        ax.axis("off")
     crop_box = np.array([[-1e3, 1e3], [-1e3, 1e3], [CROP_Z, 1e3]])
     for i, shape in enumerate(shapes):
         row = [r for r in main if r["shape"] == shape]
         gt = metrics.load_gt_mesh(row[0]["dataset"])
-        axs[i, 0].imshow(views.render_views(gt, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
-        axs[i, 0].set_title(f"{shape}: GT", fontsize=8)
+        figures.render_panel(axs[i, 0], gt, cams, view, f"{shape}: GT")
         for j, m in enumerate(methods):
             r = next((r for r in row if r["method"] == m.key), None)
             if r is None:
@@ -534,20 +537,12 @@ def write_figure(path: Path, results, methods) -> None:
             vol = Volume.read(r["volume"])
             v, b = export.crop_volume(vol.volume, vol.bounds, crop_box)
             mag = export.normalized_magnitude(v)
-            ax = axs[i, 1 + 2 * j]
-            ax.imshow(export.mip(mag, 1), origin="lower", cmap="inferno", vmin=0, vmax=1,
-                      extent=(*export.pixel_extent(b, mag.shape, 0),
-                              *export.pixel_extent(b, mag.shape, 2)))
-            ax.set_title(f"{m.label}: MIP over y", fontsize=8)
-            mesh = export.mesh_from_volume(v, b, THRESHOLD)
-            ax = axs[i, 2 + 2 * j]
-            ax.imshow(views.render_views(mesh, cams)["shaded"][view], cmap="gray", vmin=0, vmax=1)
+            axs[i, 1 + 2 * j].axis("on")
+            figures.mip_panel(axs[i, 1 + 2 * j], mag, b, 1, f"{m.label}: MIP over y", ticks=False)
             e = r["reference"]
-            ax.set_title(f"IoU {fmt(e.get('iou'), '.3f')}, C² {fmt(e.get('chamfer_sq'), '.1e')}",
-                         fontsize=8)
-    for ax in axs.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
+            figures.render_panel(axs[i, 2 + 2 * j], export.mesh_from_volume(v, b, THRESHOLD), cams,
+                                 view, f"IoU {fmt(e.get('iou'), '.3f')}, "
+                                       f"C² {fmt(e.get('chamfer_sq'), '.1e')}")
     fig.savefig(path, dpi=100)
     plt.close(fig)
 

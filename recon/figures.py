@@ -37,6 +37,43 @@ def gt_occupancy(gt_mesh, bounds, shape) -> np.ndarray:
     return inside_mesh_lattice(gt_mesh, export.voxel_axes(bounds, shape)).astype(np.float32)
 
 
+def mip_panel(ax, magnitude: np.ndarray, bounds, axis: int, title: str = "",
+              ticks: bool = True):
+    """Draw the maximum-intensity projection of ``magnitude`` [nx, ny, nz] (in [0, 1]) along
+    ``axis`` on ``ax``, at the voxels' extents in metres (bounds [3, 2] of the voxel
+    centres), on the fixed [0, 1] inferno scale every comparison figure shares. Returns the
+    image (for a colour bar)."""
+    u, v = export.mip_axes(axis)
+    image = ax.imshow(export.mip(magnitude, axis), origin="lower", cmap="inferno", vmin=0,
+                      vmax=1, interpolation="nearest",
+                      extent=(*export.pixel_extent(bounds, magnitude.shape, u),
+                              *export.pixel_extent(bounds, magnitude.shape, v)))
+    if ticks:
+        ax.set_xlabel(f"{'xyz'[u]} (m)")
+        ax.set_ylabel(f"{'xyz'[v]} (m)")
+    else:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        ax.set_title(title, fontsize=8 if not ticks else 9)
+    return image
+
+
+def render_panel(ax, mesh, cams, view: int, title: str = "") -> None:
+    """Draw the shaded render of ``mesh`` from turntable view ``view`` of ``cams``
+    (:class:`recon.views.Turntable`) on ``ax``, without axes."""
+    from . import views
+    shaded_panel(ax, views.render_views(mesh, cams)["shaded"][view], title)
+
+
+def shaded_panel(ax, shaded: np.ndarray, title: str = "") -> None:
+    """Draw a shaded render (grey levels in [0, 1]) on ``ax``, without axes."""
+    ax.imshow(shaded, cmap="gray", vmin=0, vmax=1)
+    ax.axis("off")
+    if title:
+        ax.set_title(title, fontsize=9)
+
+
 def _value(res: dict, key: str):
     v = res.get(key)
     if key == "chamfer_m" and v is not None:
@@ -93,19 +130,11 @@ def comparison(volumes, gt, *, labels=None, crop=None, threshold: float = export
     image = None
     for r, (label, bounds, mag, res, shaded) in enumerate(all_rows):
         for c, (axis, name) in enumerate(VIEWS):
-            u, v = export.mip_axes(axis)
-            ax = axs[r, c]
-            image = ax.imshow(export.mip(mag, axis), origin="lower", cmap="inferno", vmin=0,
-                              vmax=1, interpolation="nearest",
-                              extent=(*export.pixel_extent(bounds, mag.shape, u),
-                                      *export.pixel_extent(bounds, mag.shape, v)))
-            ax.set_xlabel(f"{'xyz'[u]} (m)")
-            ax.set_ylabel(f"{'xyz'[v]} (m)")
-            ax.set_title(f"{label} — {name}" if res is not None else
-                         f"ground truth (occupancy) — {name}", fontsize=9)
+            image = mip_panel(axs[r, c], mag, bounds, axis,
+                              f"{label} — {name}" if res is not None else
+                              f"ground truth (occupancy) — {name}")
         ax = axs[r, 2]
-        ax.imshow(shaded, cmap="gray", vmin=0, vmax=1)
-        ax.axis("off")
+        shaded_panel(ax, shaded)
         if res is None:
             ax.set_title("ground truth (render)", fontsize=9)
             continue
