@@ -80,12 +80,7 @@ def load_ground_truth(spec: str | Path) -> GroundTruth:
     p = Path(spec)
     suffix = p.suffix.lower()
     if suffix in MESH_SUFFIXES:
-        if not p.is_file():
-            raise FormatError(f"{p}: ground-truth mesh file not found")
-        try:
-            mesh = trimesh.load(p, force="mesh", process=False)
-        except Exception as exc:
-            raise FormatError(f"{p}: cannot read mesh ({exc})") from None
+        mesh = _read_mesh_file(p, "ground-truth mesh file")
         kind, frame = "mesh file", "the file's own coordinates, as given (no scene transform)"
     elif suffix in (".h5", ".hdf5"):
         mesh = dataset_gt_mesh(p)
@@ -177,16 +172,22 @@ def outside_box_warnings(gt: GroundTruth, bounds) -> list[str]:
             "box lies inside the evaluated box: is it in the reconstruction's frame?"]
 
 
+def _read_mesh_file(p: Path, what: str):
+    """trimesh's reading of mesh file ``p`` as given (no processing), refused in one line
+    (FormatError naming ``what``) when missing or unreadable."""
+    if not p.is_file():
+        raise FormatError(f"{p}: {what} not found")
+    try:
+        return trimesh.load(p, force="mesh", process=False)
+    except Exception as exc:
+        raise FormatError(f"{p}: cannot read mesh ({exc})") from None
+
+
 def load_reconstruction_mesh(path: str | Path) -> trimesh.Trimesh:
     """A reconstructed surface from a mesh file (world metres, as given), for evaluation:
     refused in one line when unreadable, without triangles or with non-finite vertices."""
     p = Path(path)
-    if not p.is_file():
-        raise FormatError(f"{p}: mesh file not found")
-    try:
-        mesh = trimesh.load(p, force="mesh", process=False)
-    except Exception as exc:
-        raise FormatError(f"{p}: cannot read mesh ({exc})") from None
+    mesh = _read_mesh_file(p, "mesh file")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise FormatError(f"{p}: the reconstructed mesh has no triangles")
     verts = np.asarray(mesh.vertices, dtype=np.float64)

@@ -36,14 +36,8 @@ def check_checkpoint_path(path, resume: bool) -> Path:
     would replace it (a dataset given by mistake must never be overwritten; a resumed run
     reads the file first and refuses it if it is not a checkpoint). The command line also
     asks for ``--force`` to replace an existing checkpoint."""
-    p = Path(path)
-    if p.is_dir():
-        raise InputError(f"--checkpoint {p}: is a directory, expected a file name")
-    for parent in p.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise InputError(f"--checkpoint {p}: {parent} is not a directory")
-            break
+    from sonarsim.outputs import check_output
+    p = check_output(path, option="--checkpoint", exists_ok=True)
     if p.exists() and not resume and not is_checkpoint(p):
         raise InputError(f"--checkpoint {p}: exists and is not a solver checkpoint; refusing "
                          "to replace it (choose another file name)")
