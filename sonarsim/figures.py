@@ -76,12 +76,11 @@ def max_pool_rows(rows: np.ndarray, group: int) -> np.ndarray:
 def voxel_extent(bounds, shape, axis: int) -> tuple[float, float]:
     """Outer edges (m) of the voxels along ``axis``: voxel centres span ``bounds[axis]``
     (lo, hi), so the image covers lo - d/2 .. hi + d/2 with d = (hi - lo) / (n - 1); a
-    single voxel takes the smallest spacing of the other axes."""
-    b = np.asarray(bounds, dtype=np.float64)
-    n = np.asarray(shape)
-    steps = np.where(n > 1, (b[:, 1] - b[:, 0]) / np.maximum(n - 1, 1), np.inf)
-    d = steps[axis] if n[axis] > 1 else float(steps.min())
-    d = d if np.isfinite(d) else 1.0
+    single voxel takes the smallest spacing of the other axes
+    (:func:`sonarsim.dataset.volume.voxel_spacing`, rule ``'min'``), a grid of one voxel 1 m."""
+    from .dataset.volume import voxel_spacing
+    b = np.asarray(bounds, dtype=np.float64).reshape(3, 2)
+    d = voxel_spacing(b, shape, single="min")[axis] if (np.asarray(shape) > 1).any() else 1.0
     return float(b[axis, 0] - d / 2), float(b[axis, 1] + d / 2)
 
 
