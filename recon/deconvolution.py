@@ -32,6 +32,8 @@ import scipy.fft
 
 from sonarsim.errors import InputError
 
+from .field import NetworkSettings
+
 METHODS = ("wiener", "inr")
 DECONVOLVED = "deconvolved_analytic"
 OUT_OF_BAND_DB = -40.0      # |P|² below this (re its peak): out of band, noise only
@@ -244,8 +246,12 @@ def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: flo
 # ---- INR: the network ----------------------------------------------------------------------
 
 @dataclass
-class INRSettings:
+class INRSettings(NetworkSettings):
     """Sizes and weights of the INR deconvolution (defaults: see docs/reconstruction.md).
+
+    The network settings (``hash_levels`` … ``mlp_hidden``) are those of
+    :class:`recon.field.NetworkSettings`, shared with NBP's field, with the INR's own
+    defaults; the names before 2026-11 (``n_levels``, ``width``, …) are in :data:`RENAMED`.
 
     The reference (AirSAS): 360 pings per INR, 20 hash levels × 2 features, 2^15 entries per
     level, base resolution 16, scale 1.5, MLP 128 × 3 hidden, lr 1e-3, 1000 iterations,
@@ -253,39 +259,40 @@ class INRSettings:
     use a 32-wide, 2-hidden MLP with a higher learning rate and fewer iterations.
     """
 
+    # the network (recon.field.NetworkSettings), the INR's defaults
+    hash_levels: int = 16
+    hash_features: int = 2
+    hash_log2_size: int = 15
+    hash_base_resolution: int = 16
+    hash_level_scale: float = 1.5
+    mlp_width: int = 32
+    mlp_hidden: int = 2
+    # the fit
     pings_per_inr: int = 360
     iterations: int = 300
     lr: float = 1e-2
     lr_final: float = 1e-3          # exponential decay from lr to lr_final over the run
     sparsity: float = 1e-1
     phase: float = 1e-4
-    n_levels: int = 16
-    features_per_level: int = 2
-    log2_hashmap_size: int = 15
-    base_resolution: int = 16
-    per_level_scale: float = 1.5
-    width: int = 32
-    hidden_layers: int = 2
     seed: int = 0
     band_db: float = 30.0           # data term within this many dB of the pulse's peak
 
     def validate(self) -> None:
-        """Every field in its range (InputError, one line naming the option), before any
-        work: a level count whose finest resolution overflows, a width or batch that cannot
-        fit, are refused here rather than failing later as a NaN loss."""
+        """Every field in its range (InputError, one line naming the setting), before any
+        work: the network's ranges are :meth:`NetworkSettings.validate_network`'s (a level
+        count whose finest resolution overflows is refused there rather than failing later
+        as a NaN loss); a width or batch that cannot fit is refused by the memory check."""
         for name, lo, hi in (("pings_per_inr", 1, 1 << 20), ("iterations", 1, 1_000_000),
-                             ("n_levels", 1, 64), ("features_per_level", 1, 8),
-                             ("log2_hashmap_size", 1, 24), ("base_resolution", 1, 1 << 20),
-                             ("width", 1, 1024), ("hidden_layers", 0, 16),
+                             ("hash_levels", 1, 64), ("hash_features", 1, 8),
+                             ("hash_log2_size", 1, 26), ("hash_base_resolution", 1, 1 << 20),
+                             ("mlp_width", 1, 1024), ("mlp_hidden", 0, 16),
                              ("seed", 0, 2 ** 32 - 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise InputError(f"inr {name}: must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, lo, hi in (("lr", 0.0, 1.0), ("lr_final", 0.0, 1.0),
-                             ("per_level_scale", 1.0, 4.0)):
+        for name, lo, hi in (("lr", 0.0, 1.0), ("lr_final", 0.0, 1.0)):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi) and not (
-                    name == "per_level_scale" and v == 1.0):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
                 raise InputError(f"inr {name}: must be in ({lo:g}, {hi:g}], got {v!r}")
         for name in ("sparsity", "phase"):
             v = getattr(self, name)
@@ -294,12 +301,13 @@ class INRSettings:
         if not (isinstance(self.band_db, (int, float)) and self.band_db > 0):
             raise InputError(f"inr band_db: must be positive (inf = full band), "
                              f"got {self.band_db!r}")
-        finest = self.base_resolution * self.per_level_scale ** (self.n_levels - 1)
-        if not finest <= MAX_RESOLUTION:
-            raise InputError(f"inr n_levels: {self.n_levels} levels from base resolution "
-                             f"{self.base_resolution} at scale {self.per_level_scale:g} reach a "
-                             f"resolution of {finest:.3g}, beyond {MAX_RESOLUTION} (float32 "
-                             "coordinates): use fewer levels or a smaller --per-level-scale")
+        if not isinstance(self.hash_level_scale, (int, float)):
+            raise InputError(f"inr hash_level_scale: must be a number, got "
+                             f"{self.hash_level_scale!r}")
+        try:
+            self.validate_network()
+        except InputError as exc:
+            raise InputError(f"inr {exc}") from None
 
     def memory_estimate(self, n_samples: int) -> tuple[int, str]:
         """(peak bytes, how they are made up) of fitting one batch of ``pings_per_inr`` pings
@@ -307,13 +315,12 @@ class INRSettings:
         (4 float32 per entry), and per sample the encoding and every MLP activation, kept for
         the backward pass with their gradients (2 float32 each), plus the float64 NumPy loss
         and its FFTs (about 16 float64 per sample)."""
-        entries = self.n_levels * min(2 ** self.log2_hashmap_size,
-                                      int(self.base_resolution * self.per_level_scale
-                                          ** (self.n_levels - 1) + 2) ** 2)
-        tables = entries * self.features_per_level * 4 * 4
+        entries = self.hash_levels * min(2 ** self.hash_log2_size,
+                                         int(self.finest_resolution() + 2) ** 2)
+        tables = entries * self.hash_features * 4 * 4
         samples = self.pings_per_inr * int(n_samples)
-        per_sample = (self.n_levels * self.features_per_level
-                      + self.width * max(self.hidden_layers, 1) * 2 + 1) * 4 * 2 + 16 * 8
+        per_sample = (self.n_features()
+                      + self.mlp_width * max(self.mlp_hidden, 1) * 2 + 1) * 4 * 2 + 16 * 8
         return tables + samples * per_sample, (
             f"hash tables {tables / 2**20:.0f} MiB + {self.pings_per_inr} pings x {n_samples} "
             f"samples x {per_sample} bytes")
@@ -326,13 +333,11 @@ class INRSettings:
         against the default's (the MLP and the encoding dominate the cost). Wall time on k
         idle cores is about this / k."""
         def activations(st):
-            return st.n_levels * st.features_per_level + st.width * max(st.hidden_layers, 1) * 2 + 1
+            return st.n_features() + st.mlp_width * max(st.mlp_hidden, 1) * 2 + 1
         scale = activations(self) / activations(INRSettings())
         return (INR_CPU_S_PER_SAMPLE_ITERATION * scale * int(n_pings) * int(n_samples)
                 * self.iterations)
 
-
-MAX_RESOLUTION = 1 << 24     # finest hash-grid resolution: float32 coordinates resolve 2^-24
 
 # CPU seconds per sample and Adam iteration of the default network, measured on the
 # Table-2 bunny (360 pings x 718 samples, 20 iterations, start-up included: 14.6 s CPU on
@@ -350,17 +355,38 @@ INR_HELP = {
     "lr_final": "final learning rate of the exponential decay",
     "sparsity": "weight of mean|w|",
     "phase": "weight of the phase-smoothness term",
-    "n_levels": "hash-grid levels",
-    "features_per_level": "features per hash-grid level",
-    "log2_hashmap_size": "log2 of the entries per hash level",
-    "base_resolution": "coarsest hash-grid resolution",
-    "per_level_scale": "resolution factor between hash-grid levels",
-    "width": "MLP width",
-    "hidden_layers": "MLP hidden layers",
+    "hash_levels": "hash-grid levels",
+    "hash_features": "features per hash-grid level",
+    "hash_log2_size": "log2 of the entries per hash level",
+    "hash_base_resolution": "coarsest hash-grid resolution",
+    "hash_level_scale": "resolution factor between hash-grid levels",
+    "mlp_width": "MLP width",
+    "mlp_hidden": "MLP hidden layers",
     "seed": "seed of the initial weights",
     "band_db": "fit the data only where the pulse spectrum is within this many dB of its peak "
                "('inf' = full band)",
 }
+
+
+#: The INR settings' names before they became :class:`recon.field.NetworkSettings`' (old
+#: name → new name): ``recon deconvolve --n-levels`` and a batch's ``deconvolve = {n_levels
+#: = …}`` are refused in one line naming the new one.
+RENAMED = {"n_levels": "hash_levels", "features_per_level": "hash_features",
+           "log2_hashmap_size": "hash_log2_size", "base_resolution": "hash_base_resolution",
+           "per_level_scale": "hash_level_scale", "width": "mlp_width",
+           "hidden_layers": "mlp_hidden"}
+
+
+def renamed_setting(name: str, option: bool = False) -> str | None:
+    """The one-line refusal of an old INR setting name (None for any other name):
+    ``option`` words it as command-line options (``--n-levels``), else as keys."""
+    new = RENAMED.get(name)
+    if new is None:
+        return None
+    why = "the INR and recon nbp share the network settings' names"
+    if option:
+        return f"--{name.replace('_', '-')} is now --{new.replace('_', '-')} ({why})"
+    return f"{name!r} is now {new!r} ({why})"
 
 
 class _Field:
@@ -374,16 +400,16 @@ class _Field:
         m = jit()
         self.dr, self.m = dr, m
         rng = dr.rng(seed=seed)
-        self.enc = nn.HashGridEncoding(m.Float, 2, n_levels=st.n_levels,
-                                       n_features_per_level=st.features_per_level,
-                                       hashmap_size=2 ** st.log2_hashmap_size,
-                                       base_resolution=st.base_resolution,
-                                       per_level_scale=st.per_level_scale, rng=rng)
+        self.enc = nn.HashGridEncoding(m.Float, 2, n_levels=st.hash_levels,
+                                       n_features_per_level=st.hash_features,
+                                       hashmap_size=2 ** st.hash_log2_size,
+                                       base_resolution=st.hash_base_resolution,
+                                       per_level_scale=st.hash_level_scale, rng=rng)
         layers = []
-        for _ in range(st.hidden_layers):
-            layers += [nn.Linear(-1, st.width, bias=False), nn.ReLU()]
+        for _ in range(st.mlp_hidden):
+            layers += [nn.Linear(-1, st.mlp_width, bias=False), nn.ReLU()]
         layers.append(nn.Linear(-1, 1, bias=False))
-        self.net = nn.Sequential(*layers).alloc(m.TensorXf, st.n_levels * st.features_per_level,
+        self.net = nn.Sequential(*layers).alloc(m.TensorXf, st.n_features(),
                                                 rng=rng)
         # A Python-float learning rate: Adam turns it into an opaque value itself. (An
         # array learning rate is multiplied in place by Adam's debiasing factor in drjit
@@ -494,7 +520,7 @@ def check_inr_memory(st: INRSettings, n_pings: int, n_samples: int) -> None:
     need, detail = replace(st, pings_per_inr=min(st.pings_per_inr, n_pings)).memory_estimate(
         n_samples)
     limits.check_memory(need, "INR deconvolution", detail,
-                        "use fewer --pings-per-inr, a smaller --width or fewer --n-levels")
+                        "use fewer --pings-per-inr, a smaller --mlp-width or fewer --hash-levels")
 
 
 def check_inr_time(n_pings: int, n_samples: int, settings: INRSettings,

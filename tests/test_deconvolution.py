@@ -256,11 +256,51 @@ def test_cli_options_are_the_inr_settings():
     from recon.commands import deconvolve as cmd
     parser = argparse.ArgumentParser()
     cmd.add_arguments(parser)
-    args = parser.parse_args(["d.h5", "--out", "o.h5", "--n-levels", "3", "--per-level-scale", "2"])
+    args = parser.parse_args(["d.h5", "--out", "o.h5", "--hash-levels", "3",
+                              "--hash-level-scale", "2"])
     d = dc.INRSettings()
     for f in dataclasses.fields(dc.INRSettings):
-        expected = {"n_levels": 3, "per_level_scale": 2.0}.get(f.name, getattr(d, f.name))
+        expected = {"hash_levels": 3, "hash_level_scale": 2.0}.get(f.name, getattr(d, f.name))
         assert getattr(args, f.name) == expected, f.name
+
+
+def test_inr_network_settings_are_the_fields_network_settings():
+    """One settings object (#22): the INR's network is described by recon.field's
+    NetworkSettings fields (same names, same range checks as recon nbp's field), with the
+    INR's own defaults; the old names are gone."""
+    import dataclasses
+    from recon.field import NetworkSettings
+    assert issubclass(dc.INRSettings, NetworkSettings)
+    names = {f.name for f in dataclasses.fields(dc.INRSettings)}
+    assert {f.name for f in dataclasses.fields(NetworkSettings)} <= names
+    assert not names & set(dc.RENAMED)
+    assert set(dc.RENAMED.values()) == {f.name for f in dataclasses.fields(NetworkSettings)}
+    st = dc.INRSettings()
+    assert (st.hash_levels, st.mlp_width, st.mlp_hidden) == (16, 32, 2)   # the INR's defaults
+    assert st.n_features() == 32
+    # the field's finest-resolution rule (2^24 cells per axis) refuses what overflows
+    with pytest.raises(InputError, match="inr hash_levels: the finest level"):
+        dc.INRSettings(hash_levels=40, hash_level_scale=2.0).validate()
+    with pytest.raises(InputError, match="inr mlp_width"):
+        dc.INRSettings(mlp_width=4096).validate()
+
+
+@pytest.mark.parametrize("old, new", [("--n-levels", "--hash-levels"), ("--width", "--mlp-width"),
+                                      ("--hidden-layers", "--mlp-hidden"),
+                                      ("--per-level-scale", "--hash-level-scale"),
+                                      ("--features-per-level", "--hash-features"),
+                                      ("--log2-hashmap-size", "--hash-log2-size"),
+                                      ("--base-resolution", "--hash-base-resolution")])
+def test_old_inr_option_names_are_refused_naming_the_new_one(tmp_path, capsys, old, new):
+    from recon.cli import main
+    with pytest.raises(SystemExit) as stop:     # a usage error: argparse's exit
+        main(["deconvolve", str(tmp_path / "d.h5"), "--out", str(tmp_path / "o.h5"), old, "3"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and f"{old} is now {new}" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert dc.renamed_setting(old[2:].replace("-", "_")).startswith(
+        f"{old[2:].replace('-', '_')!r} is now {new[2:].replace('-', '_')!r}")
+    assert dc.renamed_setting("lr") is None
 
 
 def test_inr_cost_is_estimated_and_a_long_run_refused_before_any_work(tmp_path, capsys):
@@ -271,7 +311,7 @@ def test_inr_cost_is_estimated_and_a_long_run_refused_before_any_work(tmp_path, 
     one = st.cpu_seconds_estimate(360, 718)
     assert one == pytest.approx(dc.INR_CPU_S_PER_SAMPLE_ITERATION * 360 * 718 * 300)
     assert st.cpu_seconds_estimate(720, 718) == pytest.approx(2 * one)
-    assert dc.INRSettings(width=128, hidden_layers=3).cpu_seconds_estimate(360, 718) > 3 * one
+    assert dc.INRSettings(mlp_width=128, mlp_hidden=3).cpu_seconds_estimate(360, 718) > 3 * one
     _, path = _point_dataset(tmp_path, 12)
     out = tmp_path / "pd.h5"
     rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--max-hours", "1e-9")

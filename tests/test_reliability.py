@@ -1080,3 +1080,38 @@ def test_slices_interrupted_by_a_full_disk_leave_no_file_at_a_final_path(tmp_pat
     with pytest.raises(WriteError, match="slice_z_0002.png: no space left"):
         export.write_slices(tmp_path / "s", magnitude, [[0, 1], [0, 1], [0, 1]])
     assert len(calls) == 3 and sorted(p.name for p in (tmp_path / "s").iterdir()) == []
+
+
+# --- house: the INR's network settings are recon.field.NetworkSettings' (#22, one settings
+# object); the same refusals under the new names, and the old names refused naming the new one
+
+@pytest.mark.parametrize("option, value, word", [
+    ("--hash-levels", "1000", "hash_levels"), ("--mlp-width", "100000", "mlp_width"),
+    ("--mlp-hidden", "99", "mlp_hidden"), ("--lr", "50", "lr"),
+    ("--hash-level-scale", "8", "hash_level_scale"), ("--pings-per-inr", "0", "pings_per_inr")])
+def test_deconvolve_inr_network_options_are_checked_before_any_work(ds_file, tmp_path, capsys,
+                                                                    option, value, word):
+    out = tmp_path / "pd.h5"
+    t0 = time.perf_counter()
+    assert recon_main(["deconvolve", str(ds_file), "--out", str(out), option, value]) == 2
+    line = one_line_error(capsys)
+    assert word in line and "lower --lr" not in line
+    assert time.perf_counter() - t0 < 5 and not out.exists()
+
+
+def test_deconvolve_inr_memory_is_estimated_before_any_work_new_names(ds_file, tmp_path, capsys):
+    out = tmp_path / "pd.h5"
+    assert recon_main(["deconvolve", str(ds_file), "--out", str(out), "--max-memory", "64M",
+                       "--mlp-width", "1024", "--mlp-hidden", "8"]) == 2
+    assert "INR deconvolution" in one_line_error(capsys) and not out.exists()
+
+
+@pytest.mark.parametrize("old, new", [("--n-levels", "--hash-levels"), ("--width", "--mlp-width"),
+                                      ("--hidden-layers", "--mlp-hidden")])
+def test_deconvolve_old_inr_option_names_are_refused_naming_the_new(ds_file, tmp_path, capsys,
+                                                                    old, new):
+    out = tmp_path / "pd.h5"
+    with pytest.raises(SystemExit) as stop:          # a usage error (argparse), exit 2
+        recon_main(["deconvolve", str(ds_file), "--out", str(out), old, "4"])
+    assert stop.value.code == 2
+    assert f"{old} is now {new}" in one_line_error(capsys) and not out.exists()

@@ -14,7 +14,7 @@ HELP = ("Pulse-deconvolve a sonar dataset (neural INR or Wiener); writes a datas
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..deconvolution import INR_HELP, INRSettings
+    from ..deconvolution import INR_HELP, RENAMED, INRSettings
     d = INRSettings()
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) with real waveforms")
     parser.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
@@ -31,11 +31,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         kind = int if "int" in str(f.type) else float
         g.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=getattr(d, f.name),
                        help=f"{INR_HELP[f.name]} (default {getattr(d, f.name)})")
+    for old in RENAMED:                 # the old names: one line naming the new one
+        g.add_argument("--" + old.replace("_", "-"), action=_Renamed, help=argparse.SUPPRESS)
     parser.add_argument("--max-hours", type=float, default=DEFAULT_MAX_HOURS, metavar="H",
                         help="refuse an INR run whose estimated wall time on this machine's "
                              f"cores exceeds H hours (default {DEFAULT_MAX_HOURS:g}; the "
                              "estimate is printed before the fit)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+class _Renamed(argparse.Action):
+    """An option that was renamed: refused at parse time (one-line usage error, exit 2)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        kwargs.pop("nargs", None)
+        super().__init__(option_strings, dest="_renamed_" + dest, nargs="?", **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ..deconvolution import renamed_setting
+        parser.error(renamed_setting(option_string.lstrip("-").replace("-", "_"), option=True))
 
 
 def run(args: argparse.Namespace) -> int:
