@@ -925,28 +925,6 @@ def test_backproject_with_a_beam_mask_no_voxel_sees_is_refused(ds_file, tmp_path
     assert np.any(Volume.read(out).volume)
 
 
-@pytest.mark.parametrize("option, value, word", [
-    ("--n-levels", "1000", "n_levels"), ("--width", "100000", "width"),
-    ("--hidden-layers", "99", "hidden_layers"), ("--lr", "50", "lr"),
-    ("--per-level-scale", "8", "per_level_scale"), ("--pings-per-inr", "0", "pings_per_inr")])
-def test_deconvolve_inr_options_are_checked_before_any_work(ds_file, tmp_path, capsys, option,
-                                                            value, word):
-    # was: `--n-levels 1000` ran, overflowed the level resolutions and blamed the learning rate
-    out = tmp_path / "pd.h5"
-    t0 = time.perf_counter()
-    assert recon_main(["deconvolve", str(ds_file), "--out", str(out), option, value]) == 2
-    line = one_line_error(capsys)
-    assert word in line and "lower --lr" not in line
-    assert time.perf_counter() - t0 < 5 and not out.exists()
-
-
-def test_deconvolve_inr_memory_is_estimated_before_any_work(ds_file, tmp_path, capsys):
-    out = tmp_path / "pd.h5"
-    assert recon_main(["deconvolve", str(ds_file), "--out", str(out), "--max-memory", "64M",
-                       "--width", "1024", "--hidden-layers", "8"]) == 2
-    assert "INR deconvolution" in one_line_error(capsys) and not out.exists()
-
-
 # ----------------------------------------------------- solver: issue 23 (checkpoints, warm
 # ----------------------------------------------------- start chunking, solver option ranges)
 
