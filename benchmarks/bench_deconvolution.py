@@ -86,7 +86,7 @@ def _inr_child(cfg: dict) -> dict:
 def bench_inr(pings, samples, warm, iters):
     configs = [("default (16 levels, 32 x 2)", {}),
                ("reference net (20 levels, 128 x 3)",
-                {"n_levels": 20, "width": 128, "hidden_layers": 3})]
+                {"hash_levels": 20, "mlp_width": 128, "mlp_hidden": 3})]
     for label, net in configs:
         cfg = {"pings": pings, "samples": samples, "warm": warm, "iters": iters, "net": net}
         out = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)],

@@ -224,7 +224,7 @@ def check_evaluate(value, where: str) -> list[tuple[str, dict]]:
 def check_deconvolve(value, where: str) -> dict | None:
     """The pulse deconvolution a step fits (``recon.deconvolution.deconvolve``) as
     {'method', 'inr': INRSettings fields given}, or None."""
-    from .deconvolution import METHODS, INRSettings
+    from .deconvolution import METHODS, INRSettings, renamed_setting
     if value is None or value is False:
         return None
     spec = {"method": value} if isinstance(value, str) else value
@@ -241,6 +241,8 @@ def check_deconvolve(value, where: str) -> dict | None:
                          "method 'inr' only")
     fields = {f.name: f.default for f in dataclasses.fields(INRSettings)}
     for key, v in inr.items():
+        if renamed_setting(key):
+            raise InputError(f"{where}: deconvolve {renamed_setting(key)}")
         if key not in fields:
             raise InputError(f"{where}: deconvolve takes the INR settings "
                              f"{', '.join(fields)}, not {key!r}")

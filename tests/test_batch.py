@@ -469,6 +469,7 @@ deconvolve = "wiener"
     ('deconvolve = "magic"', "deconvolve method must be one of wiener, inr"),
     ('deconvolve = {method = "wiener", iterations = 5}', "apply to method 'inr' only"),
     ('deconvolve = {method = "inr", iterations = -1}', "deconvolve inr iterations: must be"),
+    ('deconvolve = {method = "inr", width = 8}', "'width' is now 'mlp_width'"),
     ('evaluate = [{protocol = "exact"}, {protocol = "exact"}]', "two evaluations are named"),
     ('evaluate = {threshold = 1.5}', "threshold must lie in [0, 1)"),
     ('evaluate = {colour = "red"}', "evaluate takes"),
