@@ -201,6 +201,7 @@ class EllipsoidSamples:
         self.out_index = p * K + k
         self.n_out = P * K
         self._origin, self._r, self._e2, self._de = tx, r, e2, dr.dot(d, e)
+        self._midpoint = 0.5 * (tx + rx)
         self._bin_width = None
         if geometry.bin_width is not None:
             self._bin_width = dr.gather(m.Float, m.Float(np.asarray(geometry.bin_width,
@@ -219,6 +220,18 @@ class EllipsoidSamples:
         t = (r * r - self._e2) / dr.select(denom > 0, denom, 1.0)
         ok = self.valid & (r * r > self._e2) & (denom > 0) & (t > 0)
         return self._origin + self.dirs * dr.select(ok, t, self.t)
+
+    def look_directions(self):
+        """Unit vectors (Array3f, one per lane) from each sample point toward the midpoint of
+        its ping's TX and RX: the direction in which the echo the sample stands for leaves the
+        point (monostatic back-scatter for a co-located TX/RX; :mod:`recon.scattering`).
+        Where the point is the midpoint itself (an invalid lane): +z."""
+        import drjit as dr
+        v = self._midpoint - self.points
+        n = dr.norm(v)
+        ok = n > 0
+        inv = dr.select(ok, 1.0 / dr.select(ok, n, 1.0), 0.0)
+        return self.m.Array3f(v[0] * inv, v[1] * inv, dr.select(ok, v[2] * inv, 1.0))
 
     def ray_steps(self):
         """Along-ray distance Δt to the next sample of the same ray (last sample: the
@@ -524,7 +537,11 @@ def render(field: Callable, samples: EllipsoidSamples, *, lambertian_eps: float 
     """Estimated complex samples (re, im) Float [P·K] (index p·K + k) of the scene ``field``.
 
     field: callable Array3f → (re, im), differentiable (a :class:`BoundVoxels` gives exact
-    normals from the trilinear gradient). lambertian_eps: finite-difference step (m) of the
+    normals from the trilinear gradient); a *directional* field (``field.directional``, e.g.
+    :class:`recon.scattering.BoundShNetwork`) is evaluated by ``field.scatter_toward(points,
+    look directions, with_gradient)`` → (σ_re, σ_im, density_re, density_im, ∇|density|): σ
+    seen from each sample's look direction (:meth:`EllipsoidSamples.look_directions`) is
+    summed, the density sets the transmittance and the Lambertian normals. lambertian_eps: finite-difference step (m) of the
     Lambertian normals of other callables; None = no Lambertian factor. occlusion_scale: s_occ
     (per metre per unit |σ|), 0 = no occlusion. With ``with_sigma`` also returns the sampled
     (re, im) at every lane (for regularisers).
@@ -533,18 +550,29 @@ def render(field: Callable, samples: EllipsoidSamples, *, lambertian_eps: float 
     m = samples.m
     P, J, K = samples.shape
     grad = None
-    if lambertian_eps is not None and hasattr(field, "gradient_of_magnitude"):
+    d_re = d_im = None
+    if getattr(field, "directional", False):
+        # σ(x, ω) toward the array scatters; the density (transmittance, normals) is the
+        # field's direction-independent part (recon.scattering)
+        s_re, s_im, d_re, d_im, grad = field.scatter_toward(
+            samples.points, samples.look_directions(), with_gradient=lambertian_eps is not None)
+    elif lambertian_eps is not None and hasattr(field, "gradient_of_magnitude"):
         s_re, s_im, grad = field.gradient_of_magnitude(samples.points)
     else:
         s_re, s_im = field(samples.points)
+    isotropic = d_re is s_re and d_im is s_im       # e.g. sh:0: one variable, one graph
     s_re = dr.select(samples.valid, s_re, 0.0)
     s_im = dr.select(samples.valid, s_im, 0.0)
+    if d_re is not None:
+        d_re, d_im = (s_re, s_im) if isotropic else (dr.select(samples.valid, d_re, 0.0),
+                                                     dr.select(samples.valid, d_im, 0.0))
     w = m.Float(1.0)
     if lambertian_eps is not None:
         w = lambertian(field, samples.points, samples.dirs, float(lambertian_eps), grad)
     dens = None
     if occlusion_scale > 0:
-        dens = _magnitude(s_re, s_im) * samples.ray_steps()
+        dens = (_magnitude(s_re, s_im) if d_re is None else _magnitude(d_re, d_im)) \
+            * samples.ray_steps()
     # One kernel for what is read several times below (σ, its Lambertian factor and the
     # along-ray density): left lazy, each reduction (the cumulative sum, the two sums over
     # rays, the priors) would re-gather the voxels or re-run the network's last step.
