@@ -4,7 +4,7 @@ The paper's pipeline (Reed et al. 2023) on the shipped Stanford bunny: simulate 
 dataset (20 kHz LFM, 20 dB SNR), reconstruct it by coherent backprojection (BP) of the
 matched-filtered data, then deconvolve the pulse (Wiener) and fit the neural field (NBP) to the
 deconvolved data; score both volumes against the ground-truth mesh (IoU, Chamfer) and draw
-their maximum-intensity projections side by side with the scores.
+them under the ground truth with their scores (``recon.figures.comparison``).
 
     python examples/reconstruct.py --out reconstruct/        # 960 poses, 400 NBP steps, ~3 min
     python examples/reconstruct.py --quick --out /tmp/x       # seconds (the test suite's size)
@@ -39,22 +39,19 @@ ABOVE_GROUND = [[-0.2, 0.2], [-0.2, 0.2], [0.005, 0.3]]   # score the object, no
 
 
 def comparison_figure(volumes: dict, scores: dict, bounds, gt, path: Path) -> Path:
-    """The ground truth (voxel centres inside the mesh) and each method's |σ| (normalised to
-    its maximum) above the ground: top and side maximum-intensity projections on one colour
-    scale, each column titled with its scores."""
-    from recon.containment import inside_mesh_lattice
-    from sonarsim.figures import mip_comparison
+    """:func:`recon.figures.comparison` (the figure of ``recon compare``): the ground truth
+    (voxel centres inside the mesh, and its render) above one row per method: top and side
+    maximum-intensity projections of |σ| above the ground on one colour scale, the render of
+    its surface and its scores."""
+    from recon import figures
+    from sonarsim.dataset import Volume
 
-    box = np.asarray(ABOVE_GROUND)
-    columns = []
-    for name, volume in volumes.items():
-        cropped, sub = export.crop_volume(volume, bounds, box)
-        columns.append((f"{name}\nIoU {scores[name]['iou']:.3f}, Chamfer "
-                        f"{1e3 * scores[name]['chamfer']:.1f} mm",
-                        export.normalized_magnitude(cropped), sub))
-    inside = inside_mesh_lattice(gt, export.voxel_axes(sub, cropped.shape))
-    columns.insert(0, ("ground truth", inside.astype(np.float32), sub))
-    return mip_comparison(columns, path, colorbar_label="|σ| / max |σ| (ground truth: inside = 1)")
+    fig = figures.comparison([Volume(v, bounds, name) for name, v in volumes.items()], gt,
+                             labels=list(volumes), crop=np.ravel(ABOVE_GROUND),
+                             results=[{"iou": scores[name]["iou"],
+                                       "chamfer_m": scores[name]["chamfer"]}
+                                      for name in volumes])
+    return figures.save(fig, path)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -97,37 +97,20 @@ def score_line(text: str) -> str:
 
 
 def comparison_figure(out: Path, scores: dict, scene: str) -> Path:
-    """``compare.png``: the ground truth (the scene's mesh voxelised on the reconstruction
-    grid: voxel centres inside it) and each method's |σ| above the ground, top and side
-    views on one colour scale; each column titled with its scores, the best marked ★."""
-    import numpy as np
+    """``compare.png`` (:func:`recon.figures.comparison`, the figure of ``recon compare``):
+    a ground-truth row (the scene's mesh voxelised on the reconstruction grid, and its
+    render) above one row per method: top and side MIPs of |σ| above the ground on one
+    colour scale, the render of its surface at the scoring threshold and its scores (the
+    ``recon evaluate`` results above), the best of each starred."""
+    from recon import figures
 
-    from recon import export
-    from recon.containment import inside_mesh_lattice
-    from recon.metrics import load_gt_mesh
-    from sonarsim.dataset import Volume
-    from sonarsim.figures import mip_comparison
-
-    box = np.reshape([float(v) for v in ABOVE_GROUND[1:]], (3, 2))
-    best_iou = max(METHODS, key=lambda k: scores[k]["iou"])
-    best_ch = min(METHODS, key=lambda k: scores[k]["chamfer_m"])
-    columns = []
-    for key, name in METHODS.items():
-        vol = Volume.read(out / f"{key}.h5")
-        volume, bounds = export.crop_volume(vol.volume, vol.bounds, box)
-        s = scores[key]
-        columns.append((f"{name}\nIoU {s['iou']:.3f}{' ★' if key == best_iou else ''}, Chamfer "
-                        f"{1e3 * s['chamfer_m']:.1f} mm{' ★' if key == best_ch else ''}",
-                        export.normalized_magnitude(volume), bounds))
-    bounds = columns[0][2]
-    gt = inside_mesh_lattice(load_gt_mesh(out / "dataset.h5"),
-                             export.voxel_axes(bounds, columns[0][1].shape))
-    columns.insert(0, ("ground truth\n(scene mesh, voxelised)", gt.astype(np.float32), bounds))
-    return mip_comparison(
-        columns, out / "compare.png",
-        colorbar_label="|σ| / max |σ| per volume (ground truth: inside = 1)",
-        suptitle=f"{scene}: the objects above the ground, scored at threshold "
-                 f"{scores['bp']['threshold']:g} (★ best)")
+    fig = figures.comparison(
+        [out / f"{key}.h5" for key in METHODS], out / "dataset.h5",
+        labels=list(METHODS.values()), crop=[float(v) for v in ABOVE_GROUND[1:]],
+        threshold=scores["bp"]["threshold"], results=[scores[key] for key in METHODS])
+    fig.suptitle(f"{scene}: the objects above the ground, scored at threshold "
+                 f"{scores['bp']['threshold']:g} (★ best)", fontsize=10)
+    return figures.save(fig, out / "compare.png")
 
 
 def verdict(scores: dict, seconds: dict, heights_m=None) -> str:

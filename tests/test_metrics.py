@@ -543,3 +543,41 @@ def test_comparison_figure_has_gt_mips_a_colour_bar_and_marks_the_best(tmp_path)
     assert "IoU 1.000 ★" in bp_title and "★" not in gd_title.split("Chamfer")[0]
     out = figures.save(fig, tmp_path / "cmp.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_comparison_rows_show_their_own_volumes_projections_at_the_voxel_edges():
+    """The one comparison figure (recon compare, the demo, examples/reconstruct.py): each
+    method's row draws the MIP along z and the MIP along y of *its* volume (normalised),
+    placed at the voxel edges in metres (centres ± half a voxel); a single-voxel axis
+    spans its one centre ± half the smallest other spacing (export.pixel_extent, the upper
+    bound of that axis is ignored)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from recon import figures
+    from sonarsim.dataset import Volume
+    rng = np.random.default_rng(0)
+    a = rng.random((5, 4, 3)).astype(np.float32)
+    b = np.zeros((5, 4, 3), np.float32)
+    b[1, 2, 0] = 1.0
+    bounds = np.array([[-0.2, 0.2], [0.0, 0.3], [0.01, 0.05]])
+    res = [{"iou": 0.5, "chamfer_m": 0.01}, {"iou": 0.4, "chamfer_m": 0.02}]
+    fig = figures.comparison([Volume(a, bounds, "bp"), Volume(b, bounds, "gd")], cube_mesh(),
+                             labels=["A", "B"], results=res)
+    panels = {ax.get_title(): ax.get_images()[0] for ax in fig.axes if ax.get_images()
+              and ax.get_label() != "<colorbar>"}
+    top_a, side_b = panels["A — top view (MIP along z)"], panels["B — side view (MIP along y)"]
+    norm_a = (a - a.min()) / (a.max() - a.min())
+    np.testing.assert_allclose(top_a.get_array(), norm_a.max(axis=2).T, rtol=1e-6)
+    np.testing.assert_array_equal(side_b.get_array(), b.max(axis=1).T)
+    assert top_a.get_clim() == (0, 1)
+    # x centres -0.2..0.2 at 0.1 m -> edges -0.25..0.25; z 0.01..0.05 at 0.02 -> 0..0.06
+    np.testing.assert_allclose(side_b.get_extent(), [-0.25, 0.25, 0.0, 0.06])
+    np.testing.assert_allclose(top_a.get_extent(), [-0.25, 0.25, -0.05, 0.35])
+    flat = figures.comparison([Volume(a[:, :, :1], bounds, "bp")], cube_mesh(), labels=["F"],
+                              results=res[:1])
+    side_f = next(ax.get_images()[0] for ax in flat.axes
+                  if ax.get_title() == "F — side view (MIP along y)")
+    np.testing.assert_allclose(side_f.get_extent(), [-0.25, 0.25, 0.01 - 0.05, 0.01 + 0.05])
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+    plt.close(flat)
