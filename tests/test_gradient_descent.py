@@ -301,3 +301,22 @@ def test_frozen_presets_are_every_entry_points_default():
     assert nbp.settings_for() == solver.settings_for("cpu", network=True)
     fields = {f.name for f in dataclasses.fields(solver.SolverSettings)}
     assert set(solver.PRESETS["gd"]) <= fields and set(solver.PRESETS["nbp"]) <= fields
+
+
+def test_solid_output_is_the_solid_of_the_same_run(point_ds):
+    """output='solid' exports recon.solid.solidify of the very field output='field' exports
+    (same seed, deterministic), as a 0/1 volume, and records both voxel counts."""
+    from recon import solid
+    g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
+    small = dict(FAST, n_rays=300, bins_per_ping=8, pings_per_iteration=5)
+    field = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, **small)
+    out = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, output="solid",
+                   solid_threshold=0.3, solid_close=0, **small)
+    expected = solid.solidify(field.volume, threshold=0.3, min_fraction=0.1, close=0, floor=True)
+    assert 0 < expected.sum() < expected.size
+    np.testing.assert_array_equal(out.volume, expected.astype(np.complex64))
+    assert out.params["solid_voxels"] == int(expected.sum())
+    assert out.params["field_occupied_voxels"] == int(solid.occupancy(field.volume, 0.3).sum())
+    for bad in (dict(solid_threshold=1.0), dict(solid_close=-1), dict(output="mesh")):
+        with pytest.raises(InputError):
+            gd.settings_for(**bad)

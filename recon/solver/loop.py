@@ -208,6 +208,17 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     return opt.params, history, info
 
 
+def solid_volume(field: np.ndarray, settings: SolverSettings) -> tuple[np.ndarray, int]:
+    """(complex64 volume 1 inside the solid of ``field`` and 0 outside, voxels of the field
+    above the solid threshold): :func:`recon.solid.solidify` with the run's settings."""
+    from .. import solid
+    occupied = solid.solidify(field, threshold=settings.solid_threshold,
+                              min_fraction=settings.solid_min_fraction,
+                              close=int(settings.solid_close), floor=settings.solid_ground)
+    above = int(np.count_nonzero(solid.occupancy(field, settings.solid_threshold)))
+    return occupied.astype(np.complex64), above
+
+
 def make_scene(grid: Grid, settings: SolverSettings, network: bool):
     """The scene representation: :class:`recon.field.NetworkScene` or :class:`VoxelScene`."""
     if network:
@@ -244,6 +255,9 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     out_grid = grid if export_grid is None else export_grid
     vol = scene.volume(params, out_grid)
     p = {k: v for k, v in asdict(settings).items() if applies_to(k, network)}
+    if settings.output == "solid":
+        vol, p["field_occupied_voxels"] = solid_volume(vol, settings)
+        p["solid_voxels"] = int(np.count_nonzero(vol))
     p["preset"] = preset or "none"
     p["scene"] = scene.kind
     p["final_loss"] = float(history[-1]["loss"]) if history else float("nan")

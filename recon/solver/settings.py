@@ -56,6 +56,12 @@ class SolverSettings(NetworkSettings):
     warm_start_iterations: int = 0
     warm_start_lr: float = 1e-2
     autocorrelation_taps: int = 0
+    # the exported volume (both representations): the fitted field, or its solid (recon.solid)
+    output: str = "field"
+    solid_threshold: float = 0.2
+    solid_min_fraction: float = 0.1
+    solid_close: int = 1
+    solid_ground: bool = True
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -79,6 +85,12 @@ class SolverSettings(NetworkSettings):
         for name, options in CHOICES.items():
             if getattr(self, name) not in options:
                 raise InputError(f"{name}: choose one of {', '.join(options)}, got {getattr(self, name)!r}")
+        if not 0 <= self.solid_threshold < 1:
+            raise InputError(f"solid_threshold: must be in [0, 1), got {self.solid_threshold}")
+        if not 0 <= self.solid_min_fraction <= 1:
+            raise InputError(f"solid_min_fraction: must be in [0, 1], got {self.solid_min_fraction}")
+        if not 0 <= int(self.solid_close) <= 10 or int(self.solid_close) != self.solid_close:
+            raise InputError(f"solid_close: must be an integer in [0, 10], got {self.solid_close}")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
 
@@ -98,7 +110,7 @@ def applies_to(name: str, network: bool) -> bool:
 
 CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
            "prior_units": ("energy", "peak"),
-           "data": ("auto", "matched", "analytic", "deconvolved")}
+           "data": ("auto", "matched", "analytic", "deconvolved"), "output": ("field", "solid")}
 
 HELP = {
     "iterations": "optimiser steps",
@@ -151,6 +163,14 @@ HELP = {
                   "surface area; favours filled interiors and no floaters)",
     "solid_floor": "occupancy: o = 1 below the grid's lowest voxel plane (the rig's ground), "
                    "so the ground's echo is o's rise there and no slab of voxels",
+    "output": "exported volume: 'field' (the fitted complex field) or 'solid' (its solid "
+              "occupancy, 1 inside and 0 outside: recon.solid.solidify, docs/reconstruction.md)",
+    "solid_threshold": "solid: occupied where |σ|/max|σ| exceeds this",
+    "solid_min_fraction": "solid: drop connected parts smaller than this fraction of the largest "
+                          "(floaters)",
+    "solid_close": "solid: close gaps of the occupied set by this many voxels",
+    "solid_ground": "solid: the grid's lowest z plane is the ground, so a shell standing on it "
+                    "is filled",
     "warm_start_lr": "NBP: Adam learning rate of the warm start (absolute; the fit is to the "
                      "backprojection normalised to max 1)",
     "warm_start_iterations": "NBP: first fit the network to the scaled backprojection for this many "
