@@ -32,6 +32,8 @@ An empty reconstruction (nothing above the threshold) gives IoU 0 and ``None``
 """
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,6 +58,47 @@ def load_gt_mesh(path: str | Path) -> trimesh.Trimesh:
     holding ``gt/vertices`` + ``gt/faces`` (as placed), or a scene TOML / shipped scene name;
     checked by :func:`recon.groundtruth.load_ground_truth` (which also says which frame)."""
     return groundtruth.load_ground_truth(path).mesh
+
+
+# ------------------------------------------------------------- GT point sets, made once
+
+_GT_CACHE: "OrderedDict[tuple, object]" = OrderedDict()
+GT_CACHE_SIZE = 16      # entries (a GT's lattice mask or sample set: a few MB each)
+
+
+def mesh_fingerprint(mesh: trimesh.Trimesh) -> str:
+    """Digest of a mesh's vertices and faces (equal meshes, equal digests)."""
+    h = hashlib.sha1(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return h.hexdigest()
+
+
+def _array_key(value) -> object:
+    if value is None:
+        return None
+    if isinstance(value, (list, tuple)):
+        return tuple(_array_key(v) for v in value)
+    a = np.ascontiguousarray(value, dtype=np.float64)
+    return (a.shape, hashlib.sha1(a.tobytes()).hexdigest())
+
+
+def cached_gt(kind: str, mesh: trimesh.Trimesh, args: tuple, compute):
+    """``compute()`` for a GT mesh, remembered per (kind, mesh, args) in this process: the
+    cells of one shape (every method, both protocols, every threshold) share the GT's
+    containment lattice and sample sets instead of recomputing them (seconds each). The
+    arrays returned are read-only. ``args`` may hold arrays (keyed by their content)."""
+    key = (kind, mesh_fingerprint(mesh), _array_key(args))
+    if key in _GT_CACHE:
+        _GT_CACHE.move_to_end(key)
+        return _GT_CACHE[key]
+    value = compute()
+    for a in (value if isinstance(value, tuple) else (value,)):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    _GT_CACHE[key] = value
+    while len(_GT_CACHE) > GT_CACHE_SIZE:
+        _GT_CACHE.popitem(last=False)
+    return value
 
 
 # --------------------------------------------------------------------------- IoU
@@ -100,20 +143,65 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 # ----------------------------------------------------------------------- distances
 
+def _nearest(tree_of_b, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distances, indices) of each point of ``a`` to its nearest point of the tree's set."""
+    return tree_of_b.query(a, workers=-1)
+
+
+class PointSet:
+    """Points [N, 3] (and optional unit normals [N, 3]) with their k-d tree built once, for
+    comparing one set (a GT's surface samples) with many others (one per threshold)."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray | None = None):
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self.normals = normals
+        self._tree = None
+
+    @property
+    def tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def _as_set(points, normals=None) -> PointSet:
+    return points if isinstance(points, PointSet) else PointSet(points, normals)
+
+
+def surface_agreement(a, b, na=None, nb=None) -> tuple[dict, float | None, float | None]:
+    """(:func:`chamfer` of ``a`` and ``b``, normal consistency, normal angular error in
+    degrees) from one nearest-neighbour query each way: point sets [N, 3] / [M, 3] or
+    :class:`PointSet` (whose tree is reused); normals [N, 3] / [M, 3] (or the sets' own)
+    give the normal terms of :func:`normal_agreement`, else they are None."""
+    a, b = _as_set(a, na), _as_set(b, nb)
+    if len(a) == 0 or len(b) == 0:
+        return {"sq": None, "m": None, "a_to_b_m": None, "b_to_a_m": None}, None, None
+    dab, ia = _nearest(b.tree, a.points)
+    dba, ib = _nearest(a.tree, b.points)
+    cm = {"sq": float(np.mean(dab ** 2) + np.mean(dba ** 2)),
+          "m": float(0.5 * (dab.mean() + dba.mean())),
+          "a_to_b_m": float(dab.mean()), "b_to_a_m": float(dba.mean())}
+    if a.normals is None or b.normals is None:
+        return cm, None, None
+    ab = np.clip(np.abs(np.sum(a.normals * b.normals[ia], axis=1)), 0.0, 1.0)
+    ba = np.clip(np.abs(np.sum(b.normals * a.normals[ib], axis=1)), 0.0, 1.0)
+    consistency = 0.5 * (ab.mean() + ba.mean())
+    angle = 0.5 * (np.degrees(np.arccos(ab)).mean() + np.degrees(np.arccos(ba)).mean())
+    return cm, float(consistency), float(angle)
+
+
 def chamfer(a: np.ndarray, b: np.ndarray) -> dict:
-    """Chamfer distances between point sets ``a`` [N, 3] and ``b`` [M, 3] (metres).
+    """Chamfer distances between point sets ``a`` [N, 3] and ``b`` [M, 3] (metres; either may
+    be a :class:`PointSet`).
 
     ``sq``: mean squared NN distance a->b plus b->a (m²; reference definition);
     ``m``: (mean NN distance a->b + mean b->a) / 2 (m); ``a_to_b_m``, ``b_to_a_m``.
     ``None`` values when either set is empty.
     """
-    if len(a) == 0 or len(b) == 0:
-        return {"sq": None, "m": None, "a_to_b_m": None, "b_to_a_m": None}
-    dab, _ = cKDTree(b).query(a, workers=-1)
-    dba, _ = cKDTree(a).query(b, workers=-1)
-    return {"sq": float(np.mean(dab ** 2) + np.mean(dba ** 2)),
-            "m": float(0.5 * (dab.mean() + dba.mean())),
-            "a_to_b_m": float(dab.mean()), "b_to_a_m": float(dba.mean())}
+    return surface_agreement(a, b)[0]
 
 
 def normal_agreement(pa: np.ndarray, na: np.ndarray, pb: np.ndarray, nb: np.ndarray
@@ -125,15 +213,8 @@ def normal_agreement(pa: np.ndarray, na: np.ndarray, pb: np.ndarray, nb: np.ndar
     mean ``|n_a . n_b|`` (1 = perfect), the angular error the mean ``arccos |n_a . n_b|``
     (0°..90°, 0 = perfect), each averaged over both directions. (None, None) if a set is empty.
     """
-    if len(pa) == 0 or len(pb) == 0:
-        return None, None
-    _, ia = cKDTree(pb).query(pa, workers=-1)
-    _, ib = cKDTree(pa).query(pb, workers=-1)
-    ab = np.clip(np.abs(np.sum(na * nb[ia], axis=1)), 0.0, 1.0)
-    ba = np.clip(np.abs(np.sum(nb * na[ib], axis=1)), 0.0, 1.0)
-    consistency = 0.5 * (ab.mean() + ba.mean())
-    angle = 0.5 * (np.degrees(np.arccos(ab)).mean() + np.degrees(np.arccos(ba)).mean())
-    return float(consistency), float(angle)
+    _, consistency, angle = surface_agreement(pa, pb, na, nb)
+    return consistency, angle
 
 
 def normal_consistency(pa: np.ndarray, na: np.ndarray, pb: np.ndarray, nb: np.ndarray
@@ -193,11 +274,16 @@ class Evaluator:
         self.grid = CellGrid(self.bounds[:, 0], self.bounds[:, 1], float(cell))
         self.n_samples, self.seed = int(n_samples), int(seed)
         self.gt_mesh = gt_mesh
-        inside = inside_mesh_lattice(gt_mesh, self.coords)
+        inside = cached_gt("lattice", gt_mesh, tuple(self.coords),
+                           lambda: inside_mesh_lattice(gt_mesh, self.coords))
         idx = np.nonzero(inside)
         self.gt_points = np.stack([self.coords[a][idx[a]] for a in range(3)], axis=1)
         self.gt_occupancy = self.grid.occupancy(self.gt_points)
-        self.gt_surface, self.gt_normals = self._samples(gt_mesh, self.seed)
+        box = None if self.crop is None else self.bounds
+        self.gt_surface, self.gt_normals = cached_gt(
+            "samples", gt_mesh, (self.n_samples, self.seed, box),
+            lambda: self._samples(gt_mesh, self.seed))
+        self.gt_set = PointSet(self.gt_surface, self.gt_normals)   # its k-d tree: built once
 
     def _samples(self, mesh: trimesh.Trimesh, seed: int) -> tuple[np.ndarray, np.ndarray]:
         box = None if self.crop is None else self.bounds
@@ -211,9 +297,8 @@ class Evaluator:
         mesh = export.extract_surface(self.magnitude, self.bounds, t)
         # a different seed than the GT so the two sample sets are independent
         surf, normals = self._samples(mesh, self.seed + 1)
-        cm = chamfer(self.gt_surface, surf)
-        cv = chamfer(self.gt_surface, pts)
-        nc, angle = normal_agreement(self.gt_surface, self.gt_normals, surf, normals)
+        cm, nc, angle = surface_agreement(self.gt_set, PointSet(surf, normals))
+        cv = chamfer(self.gt_set, pts)
         return {
             "threshold": t,
             "iou": iou(occ, self.gt_occupancy),
@@ -330,8 +415,7 @@ def evaluate_mesh(mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh, *, cell: floa
     clip = None if crop is None else box
     gt_surf, gt_n = samples_in_box(gt_mesh, n_samples, seed, clip)
     surf, normals = samples_in_box(mesh, n_samples, seed + 1, clip)
-    cm = chamfer(gt_surf, surf)
-    nc, angle = normal_agreement(gt_surf, gt_n, surf, normals)
+    cm, nc, angle = surface_agreement(gt_surf, surf, gt_n, normals)
     return {"protocol": "exact", "threshold": None, "iou": iou(pred_cells, gt_cells),
             "chamfer_sq": cm["sq"], "chamfer_m": cm["m"],
             "completeness_m": cm["a_to_b_m"], "accuracy_m": cm["b_to_a_m"],

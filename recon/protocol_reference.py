@@ -37,7 +37,8 @@ from sonarsim.errors import InputError
 
 from . import export
 from .containment import inside_mesh_lattice, inside_mesh_points
-from .metrics import (N_SURFACE_SAMPLES, chamfer, iou, normal_agreement, surface_samples)
+from .metrics import (N_SURFACE_SAMPLES, PointSet, cached_gt, iou, surface_agreement,
+                      surface_samples)
 
 BOX = np.array([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]])      # the simulated scene box (m)
 GRID_SHAPE = (125, 125, 94)                                  # its voxel grid (3.2 mm)
@@ -127,16 +128,18 @@ class _GroundTruth:
     samples and normals."""
 
     def __init__(self, gt_mesh: trimesh.Trimesh, seed: int, n_volume: int, n_surface: int):
-        self.volume = volume_samples(gt_mesh, n_volume, seed)
+        self.volume = cached_gt("volume samples", gt_mesh, (n_volume, seed),
+                                lambda: volume_samples(gt_mesh, n_volume, seed))
         self.cells = voxelize(self.volume)
-        self.surface, self.normals = surface_samples(gt_mesh, n_surface, seed)
+        self.surface, self.normals = cached_gt("samples", gt_mesh, (n_surface, seed, None),
+                                               lambda: surface_samples(gt_mesh, n_surface, seed))
+        self.surface_set = PointSet(self.surface, self.normals)    # k-d tree built once
         self.seed, self.n_surface = seed, n_surface
 
     def surface_scores(self, mesh: trimesh.Trimesh) -> dict:
         """Chamfer, normal agreement and ``mesh_iou`` of a reconstructed surface."""
         surf, normals = surface_samples(mesh, self.n_surface, self.seed + 1)
-        cm = chamfer(self.surface, surf)
-        nc, angle = normal_agreement(self.surface, self.normals, surf, normals)
+        cm, nc, angle = surface_agreement(self.surface_set, PointSet(surf, normals))
         return {"chamfer_sq": cm["sq"], "chamfer_m": cm["m"],
                 "completeness_m": cm["a_to_b_m"], "accuracy_m": cm["b_to_a_m"],
                 "normal_consistency": nc, "normal_error_deg": angle,
