@@ -1,4 +1,6 @@
-"""Analytic point-scatterer datasets, for tests, benchmarks and sanity checks of reconstructors.
+"""Reference data: analytic point-scatterer datasets, for the tests, the benchmarks and sanity
+checks of reconstructors. Not used by the package itself (like :mod:`recon.straightforward`;
+tests/test_layout.py checks it); it lives in the package because the benchmarks use it too.
 
 Each ping's waveform is the sum over scatterers of ``amplitude · pulse`` delayed by the
 round-trip time (|p − tx| + |p − rx|)/c, built with :func:`sonarsim.signals.fractional_delay`

@@ -76,6 +76,18 @@ def test_sonarsim_never_imports_recon():
     assert {m: v for m, v in offenders.items() if v} == {}
 
 
+
+#: Reference code for the tests and benchmarks (CONTRIBUTING.md, "Reference code"): the
+#: package itself never uses it.
+REFERENCE_MODULES = ("recon.straightforward", "recon.synthetic")
+
+
+def test_the_package_never_uses_its_reference_modules():
+    assert all(m in MODULES for m in REFERENCE_MODULES)
+    users = {m: sorted(i for i in imports_of(m) if i in REFERENCE_MODULES)
+             for m in MODULES if m not in REFERENCE_MODULES}
+    assert {m: v for m, v in users.items() if v} == {}
+
 def test_plugins_depend_on_mitsuba_and_drjit_only():
     allowed = {"mitsuba", "drjit", "numpy", "__future__"} | set(sys.stdlib_module_names)
     for m in MODULES:
