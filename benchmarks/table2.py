@@ -8,11 +8,17 @@ cylinder: the reference's GT meshes from ``../shared/data/meshes`` where present
 shipped procedural cube and cylinder) and adds the SNR sweep (0 / 10 / 20 dB) and the 5 kHz
 row for one shape.
 
-A **cell** is one (method, shape, SNR, bandwidth) under one :class:`Settings`;
-:func:`run_cell` computes it independently (simulating the dataset if needed,
-reconstructing, evaluating with both protocols of ``recon evaluate``) and stores
-``<out>/cells/<cell>.json``: finished cells are kept, so an interrupted run resumes where it
-stopped (the settings' digest is part of every file name). Outputs in ``--out``:
+A **cell** is one (method, shape, SNR, bandwidth) under one :class:`Settings`. The table runs
+as a ``sonarsim batch`` (docs/batch.md): :func:`manifest` writes ``<out>/batch/table2.toml``,
+one job per dataset (shape, SNR, bandwidth; simulated from a pose file of the table's
+cylindrical poses) whose ``reconstruct`` steps are the cells (deconvolve where the method
+asks, reconstruct, evaluate with both protocols of ``recon evaluate``), and the batch engine
+runs it (``--scheduler``: in this process by default, or on a Dask cluster). The batch's
+records make it resumable: finished datasets, volumes and metrics are kept (job and step ids
+are stored in the files), an interrupted run goes on where it stopped. Datasets are named by
+what the simulation depends on only (a solver setting never re-simulates); a step's label
+carries a digest of its table and of the solver's effective settings (presets in code
+included). Outputs in ``--out``:
 
 * ``table2.md``  -- the table in the reference's layout (Chamfer, IoU, LPIPS, PSNR per method,
                     mean over shapes) for each protocol with the published row beside ours;
@@ -20,7 +26,9 @@ stopped (the settings' digest is part of every file name). Outputs in ``--out``:
 * ``table2.csv`` -- every cell, both protocols, machine readable; plus the published rows;
 * ``table2.png`` -- per shape: GT render, and per method the MIP over y and a render of the
                     τ = 0.2 surface side by side;
-* ``table2.json`` -- settings, every cell, timings.
+* ``table2.json`` -- settings, every cell, timings (stage times per cell: dataset,
+                    deconvolve, solve, evaluate; the run prints their sums, its wall and CPU time);
+* ``batch/``      -- the manifest, the batch's ``batch.csv``, datasets, volumes, metrics.
 
     .venv/bin/python benchmarks/table2.py --out bench_out/table2 [--quick] [--methods bp,pfa]
 """
@@ -90,6 +98,8 @@ class Settings:
     ``threshold_sweep``: also report each metric at its best τ (0.05 … 0.95).
     ``deconvolution``: how the GD and NBP cells' data are pulse-deconvolved ('wiener': seconds;
     'inr': the paper's neural deconvolution, about 0.1 s per ping on 2 CPU cores).
+    ``nbp_warm_start_iterations``: the NBP network's fit to BP before its iterations (None:
+    the preset's; the quick size uses 5, where the preset's 300 cost most of the CI run).
     """
     angle_step: int
     height_step: int
@@ -103,8 +113,7 @@ class Settings:
     sweep_methods: tuple[str, ...] | None = None
     threshold_sweep: bool = True
     deconvolution: str = "wiener"     # 'wiener' or 'inr' (recon.deconvolution) for GD and NBP
-    subsample_angle: int = 1          # reconstruct from every n-th angle / height of the
-    subsample_height: int = 1         # simulated scan (the dataset is not re-simulated)
+    nbp_warm_start_iterations: int | None = None   # None: the nbp preset's (its BP warm start)
 
     @property
     def n_poses(self) -> int:
@@ -112,9 +121,8 @@ class Settings:
 
     @property
     def n_pings(self) -> int:
-        """Pings each reconstruction sees (after ``subsample_*``)."""
-        return (len(range(0, 360, self.angle_step * self.subsample_angle))
-                * len(range(0, 150, self.height_step * self.subsample_height)))
+        """Pings each reconstruction sees (every pose of the scan)."""
+        return self.n_poses
 
     def data_digest(self) -> str:
         """Digest of what the simulation depends on only (poses, fidelity, the module-level
@@ -139,31 +147,40 @@ SIZES = {
                         gd_iterations=1000, nbp_iterations=1000),
     "quick": Settings(angle_step=20, height_step=15, paths_per_pose=300, shape=(25, 25, 19),
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
-                      view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False),
+                      view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False,
+                      nbp_warm_start_iterations=5),
 }
 
 
 @dataclass(frozen=True)
 class Method:
-    """A reconstructor: ``<module>.solve(dataset, grid, progress=False, **options(settings))``.
+    """A reconstructor of the table: the ``sonarsim batch`` reconstruction method ``key``
+    (its module: :data:`recon.batch_step.METHOD_MODULES`, the one method -> module map) with
+    the options ``options(settings)``.
 
     ``deconvolved``: the method fits the pulse-deconvolved dataset (the paper's pipeline:
     deconvolve, then NBP; its GD baseline is NBP without the network, on the same data),
-    made once per dataset with ``Settings.deconvolution`` (:func:`ensure_deconvolved`)."""
+    made once per dataset by the batch step's ``deconvolve`` (``Settings.deconvolution``)."""
     key: str
     label: str                       # the reference's row name (REFERENCE)
-    module: str
     options: Callable[[Settings], dict] = field(default=lambda s: {})
     deconvolved: bool = False
 
+    @property
+    def module(self) -> str:
+        from recon.batch_step import METHOD_MODULES
+        return METHOD_MODULES[self.key]
+
 
 METHODS = (
-    Method("bp", "Backprojection", "recon.backprojection"),
-    Method("gd", "Gradient Descent", "recon.gradient_descent",
+    Method("bp", "Backprojection"),
+    Method("gd", "Gradient Descent",
            lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"]}, True),
-    Method("pfa", "PFA", "recon.pfa"),
-    Method("nbp", "Neural BP (Ours)", "recon.nbp",
-           lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"]}, True),
+    Method("pfa", "PFA"),
+    Method("nbp", "Neural BP (Ours)",
+           lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"],
+                      **({} if s.nbp_warm_start_iterations is None else
+                         {"warm_start_iterations": s.nbp_warm_start_iterations})}, True),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
 
@@ -244,155 +261,213 @@ def scene_spec(name: str, out: Path, source: str = "auto") -> tuple[str, str] | 
     return None
 
 
-def cylindrical_poses(settings: Settings, box):
-    """Every angle_step-th angle and height_step-th height of the reference's 360 x 150 scan."""
-    from sonarsim.geometry import CYLINDRICAL_ANGLES, cylindrical_grid, rig_poses
-    angles, heights = cylindrical_grid()
-    idx = np.arange(angles.size)
+def cylindrical_indices(settings: Settings) -> np.ndarray:
+    """Indices into the reference's 360 x 150 cylindrical scan (height-major, angle fastest)
+    of every ``angle_step``-th angle and ``height_step``-th height."""
+    from sonarsim.geometry import CYLINDRICAL_ANGLES, cylindrical_grid
+    idx = np.arange(cylindrical_grid()[0].size)
     keep = ((idx % CYLINDRICAL_ANGLES) % settings.angle_step == 0) & \
            ((idx // CYLINDRICAL_ANGLES) % settings.height_step == 0)
+    return np.flatnonzero(keep)
+
+
+def cylindrical_poses(settings: Settings, box):
+    """Every angle_step-th angle and height_step-th height of the reference's 360 x 150 scan."""
+    from sonarsim.geometry import cylindrical_grid, rig_poses
+    angles, heights = cylindrical_grid()
+    keep = cylindrical_indices(settings)
     return rig_poses(angles[keep], heights[keep], box=box)
 
 
-def simulation_settings(cell: Cell, settings: Settings):
-    from sonarsim import signals, simulate
-    values = {k: v for k, v in SIMULATION.items() if v is not None}
-    values.update(pulse=signals.pulse_from_spec(PULSES[cell.bandwidth], signals.AIRSAS_FS), snr_db=cell.snr_db,
-                  paths_per_pose=settings.paths_per_pose,
-                  extra_meta={"poses": f"cylindrical 360x150, every {settings.angle_step} "
-                                       f"angle(s), every {settings.height_step} height(s)"})
-    known = {f.name for f in fields(simulate.SimulationSettings)}
-    return simulate.SimulationSettings(**{k: v for k, v in values.items() if k in known})
-
-
-def ensure_dataset(cell: Cell, settings: Settings, out: Path, source: str = "auto"
-                   ) -> tuple[Path, list[str], str]:
-    """(dataset path, notes, scene source): simulated once per (shape, SNR, bandwidth,
-    settings) and reused (the simulator writes atomically: an existing file is complete)."""
-    from sonarsim.scene import load_scene
-    from sonarsim.simulate import simulate
-    found = scene_spec(cell.shape, out, source)
-    if found is None:
-        raise SystemExit(f"scene {cell.shape}: no shared mesh and no shipped scene")
-    spec_text, src = found
-    path = out / "data" / f"{cell.dataset_name}_{settings.data_digest()}.h5"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        spec = load_scene(spec_text)
-    notes = [f"scene {cell.shape}: {str(w.message).split(': ', 1)[-1]}" for w in caught]
+def poses_file(settings: Settings, box, out: Path) -> Path:
+    """The table's poses as a ``sonarsim batch`` pose file (``.npy``, one row per ping: TX,
+    RX, TX boresight, RX boresight; docs/batch.md), written once per pose set and box."""
+    poses = cylindrical_poses(settings, box)
+    table = np.concatenate([poses.tx, poses.rx, poses.tx_boresight, poses.rx_boresight], axis=1)
+    key = hashlib.sha1(np.ascontiguousarray(table).tobytes()).hexdigest()[:8]
+    path = out / "data" / f"poses_{settings.angle_step}x{settings.height_step}_{key}.npy"
     if not path.is_file():
-        simulate(spec, cylindrical_poses(settings, spec.box), path,
-                 simulation_settings(cell, settings), resume=True, progress=False)
-    return path, notes, src
-
-
-def subsampled(ds, settings: Settings):
-    """Every ``subsample_angle``-th angle and ``subsample_height``-th height of a dataset
-    simulated with :func:`cylindrical_poses` (pings ordered angle-fastest, 360 / angle_step
-    per height)."""
-    if settings.subsample_angle == 1 and settings.subsample_height == 1:
-        return ds
-    per_height = len(range(0, 360, settings.angle_step))
-    idx = np.arange(ds.n_pings)
-    keep = (((idx % per_height) % settings.subsample_angle == 0)
-            & ((idx // per_height) % settings.subsample_height == 0))
-    return ds.select(np.flatnonzero(keep))
-
-
-def ensure_deconvolved(data: Path, settings: Settings) -> Path:
-    """The pulse-deconvolved dataset of ``data`` (``recon deconvolve`` with
-    ``settings.deconvolution``), made once beside it and reused. Wiener filters each ping
-    on its own: the whole scan is deconvolved (seconds) and subsampled later; the INR is
-    fitted to the subsampled pings only (its cost grows with pings)."""
-    from recon.deconvolution import deconvolve
-    from sonarsim.dataset import SonarDataset
-    sub = (settings.deconvolution != "wiener"
-           and (settings.subsample_angle, settings.subsample_height) != (1, 1))
-    tag = f"_sub{settings.subsample_angle}x{settings.subsample_height}" if sub else ""
-    path = data.with_name(f"{data.stem}{tag}_pd-{settings.deconvolution}.h5")
-    if not path.is_file():     # written atomically: an existing file is complete
-        ds = SonarDataset.read(data)
-        deconvolve(subsampled(ds, settings) if sub else ds, settings.deconvolution,
-                   progress=False).write(path)
+        from sonarsim.atomic import atomic_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, table)
     return path
 
 
-def evaluate_both(volume_path: Path, gt, settings: Settings) -> dict:
-    """{protocol: metrics} of one volume (``recon evaluate``'s evaluate_file).
-
-    exact: crop z >= 5 mm (the ground plane is not in the GT meshes), sweep of τ;
-    reference: as the reference evaluates, the whole box (ground included), IoU sweep.
-    """
-    from recon.evaluation import evaluate_file
-    out = {}
-    for protocol in PROTOCOLS:
-        crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3] if protocol == "exact" else None
-        res = evaluate_file(volume_path, gt, threshold=THRESHOLD, samples=settings.samples,
-                            crop=crop, protocol=protocol, volume_samples=settings.volume_samples,
-                            view_resolution=settings.view_resolution,
-                            sweep=settings.threshold_sweep)
-        res.pop("sweep", None)
-        out[protocol] = res
-    return out
+def job_name(cell: Cell, settings: Settings) -> str:
+    """The batch job (= dataset) of a cell: named by what the simulation depends on only."""
+    return f"{cell.dataset_name}_{settings.data_digest()}"
 
 
-def run_cell(method: str, shape: str, snr_db: float, bandwidth: str, settings: Settings,
-             out: Path, source: str = "auto") -> dict:
-    """Compute one cell (or load it if ``<out>/cells/<cell>_<digest>.json`` exists) and return
-    its result dict: cell keys, ``time_s`` (reconstruction), ``volume`` path, ``exact`` and
-    ``reference`` metrics, ``notes``. Independent of every other cell (safe to run in
-    parallel: files are written atomically)."""
+def step_label(method: Method, step: dict) -> str:
+    """The batch step (= volume and metrics files) of a method: the method and a digest of
+    the step's table *and* of the solver's effective settings (its code presets included:
+    a preset changed in code gives new files instead of reusing volumes made with the old
+    one)."""
+    from recon import batch_step
+    from sonarsim.identity import digest
+    mod = importlib.import_module(method.module)
+    options = {k: v for k, v in step.items() if k not in batch_step.STEP_KEYS}
+    effective = batch_step._option_defaults(mod, options)[0]
+    return f"{method.key}-{digest(step, {**effective, **options}, length=8)}"
+
+
+def evaluations(settings: Settings) -> list[dict]:
+    """The two evaluations of every volume (``recon evaluate``'s options as batch
+    ``evaluate`` tables): exact, crop z >= 5 mm (the ground plane is not in the GT meshes),
+    threshold sweep; reference, as the reference evaluates: the whole box, ground included."""
+    common = {"threshold": THRESHOLD, "samples": settings.samples, "images": True,
+              "volume_samples": settings.volume_samples, "sweep": settings.threshold_sweep}
+    if settings.view_resolution:
+        common["view_resolution"] = settings.view_resolution
+    return [{"name": "reference", "protocol": "reference", **common},
+            {"name": "exact", "protocol": "exact",
+             "crop": [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3], **common}]
+
+
+def manifest(cells: list[Cell], settings: Settings, out: Path, source: str = "auto"
+             ) -> tuple[dict, dict[str, tuple[str, str]]]:
+    """(the ``sonarsim batch`` manifest of the table, {cell name: (job name, step label)}).
+
+    A job per dataset (shape, SNR, bandwidth): the cylindrical poses of ``settings``
+    (:func:`poses_file`), the table's simulation settings; one ``reconstruct`` step per cell
+    of that dataset, on the whole grid over the scene box, pulse-deconvolved first where the
+    method asks (one deconvolved file per job, shared), evaluated with both protocols."""
+    from sonarsim.scene import load_scene
+    jobs: dict[str, dict] = {}
+    where: dict[str, tuple[str, str]] = {}
+    bounds = [v for pair in GRID_BOUNDS for v in pair]
+    for cell in cells:
+        name = job_name(cell, settings)
+        if name not in jobs:
+            found = scene_spec(cell.shape, out, source)
+            if found is None:
+                raise SystemExit(f"scene {cell.shape}: no shared mesh and no shipped scene")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")      # the batch reports them once
+                box = load_scene(found[0]).box
+            job = {"name": name, "scene": found[0],
+                   "poses": str(poses_file(settings, box, out)),
+                   "pulse": PULSES[cell.bandwidth], "snr_db": float(cell.snr_db),
+                   **{k: (list(v) if isinstance(v, tuple) else v)
+                      for k, v in SIMULATION.items() if v is not None}}
+            if settings.paths_per_pose is not None:
+                job["paths_per_pose"] = int(settings.paths_per_pose)
+            job["reconstruct"] = []
+            jobs[name] = job
+        m = METHOD_BY_KEY[cell.method]
+        step = {"method": m.key, "shape": list(settings.shape), "bounds": bounds,
+                **m.options(settings)}
+        if m.deconvolved:
+            step["deconvolve"] = settings.deconvolution
+        step["evaluate"] = evaluations(settings)
+        label = step_label(m, step)
+        jobs[name]["reconstruct"].append({"label": label, **step})
+        where[cell.name] = (name, label)
+    return {"job": list(jobs.values())}, where
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"TOML has no {value}")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)           # a TOML basic string (JSON escapes are TOML's)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"no TOML for {value!r}")
+
+
+def write_manifest(doc: dict, path: Path) -> None:
+    """``doc`` (jobs with ``reconstruct`` lists) as a TOML manifest (``sonarsim batch``)."""
+    lines = ["# benchmarks/table2.py: Table 2 as a sonarsim batch (docs/batch.md)", ""]
+    for job in doc["job"]:
+        lines.append("[[job]]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in job.items() if k != "reconstruct"]
+        for step in job.get("reconstruct", []):
+            lines += ["", "[[job.reconstruct]]"]
+            lines += [f"{k} = {_toml_value(v)}" for k, v in step.items()]
+        lines.append("")
     from sonarsim.atomic import atomic_path
-    cell = Cell(method, shape, float(snr_db), bandwidth)
-    digest = settings.digest()
-    record = out / "cells" / f"{cell.name}_{digest}.json"
-    if record.is_file():
-        return json.loads(record.read_text())
-    from recon import metrics
-    from recon.grid import Grid
-    from sonarsim.dataset import SonarDataset, Volume
-    m = METHOD_BY_KEY[method]
-    stages = {}
-    t0 = time.perf_counter()
-    data, notes, src = ensure_dataset(cell, settings, out, source)
-    stages["dataset_s"] = time.perf_counter() - t0
-    volume_path = out / "volumes" / f"{cell.name}_{digest}.h5"
-    volume_path.parent.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    fitted = ensure_deconvolved(data, settings) if m.deconvolved else data
-    stages["deconvolve_s"] = time.perf_counter() - t0
-    ds = SonarDataset.read(fitted)
-    if ds.n_pings != settings.n_pings:     # an INR-deconvolved subset is already subsampled
-        ds = subsampled(ds, settings)
-    elapsed = None
-    if volume_path.is_file():
-        vol = Volume.read(volume_path)
-        elapsed = vol.params.get("table2_time_s")
-    else:
-        grid = Grid(np.asarray(GRID_BOUNDS, dtype=np.float64), settings.shape)
-        t0 = time.perf_counter()
-        vol = importlib.import_module(m.module).solve(ds, grid, progress=False,
-                                                      **m.options(settings))
-        elapsed = time.perf_counter() - t0
-        vol.params["table2_time_s"] = float(elapsed)
-        vol.write(volume_path)
-    gt = metrics.load_gt_mesh(data)
-    t0 = time.perf_counter()
-    result = {"cell": cell.name, "method": method, "label": m.label, "shape": shape,
-              "snr_db": float(snr_db), "bandwidth": bandwidth, "settings_digest": digest,
-              "scene_source": src, "dataset": str(data), "fitted": str(fitted), "volume": str(volume_path),
-              "time_s": elapsed, "measured_snr_db": ds.meta.get("effective_snr_db", ds.snr_db),
-              "mc_snr_db": ds.meta.get("mc_snr_db"), "n_pings": int(ds.n_pings),
-              "notes": notes, **evaluate_both(volume_path, gt, settings)}
-    result["evaluate_s"] = time.perf_counter() - t0
-    result["stages_s"] = {**stages, "solve_s": elapsed, "evaluate_s": result["evaluate_s"]}
-    from recon.evaluation import json_safe
-    record.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(record) as tmp:
-        Path(tmp).write_text(json.dumps(json_safe(result), indent=1, allow_nan=False,
-                                        default=str))
-    return json.loads(record.read_text())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
+
+
+def run_batch(cells: list[Cell], settings: Settings, out: Path, source: str = "auto",
+              scheduler: str = "sequential", workers: int | None = None) -> list[dict]:
+    """Run the table as a ``sonarsim batch`` in ``out/batch`` (simulate, deconvolve,
+    reconstruct, evaluate: the batch's resume, locks and records) and return one result
+    dict per cell (:func:`cell_result`). ``scheduler``: 'sequential' (this process, the
+    default), 'local' (a Dask LocalCluster of ``workers``) or a scheduler address."""
+    from sonarsim.batch import plan_batch, run_batch as batch_run
+    from sonarsim.batch_engine import Engine
+    doc, where = manifest(cells, settings, out, source)
+    path = out / "batch" / "table2.toml"
+    write_manifest(doc, path)
+    plan = plan_batch(path, out / "batch", log=lambda m: print(m, flush=True))
+    with Engine(None if scheduler == "local" else scheduler, workers=workers) as engine:
+        result = batch_run(plan, engine, progress=False, log=lambda m: print(m, flush=True))
+    if result.failed:
+        raise SystemExit("table2: cells failed:\n" + "\n".join(
+            f"{n}: {result.errors.get(n, result.status[n])}" for n in result.failed))
+    jobs = {j.name: j for j in plan.jobs}
+    sim_wall = _simulation_walls(result.csv)
+    return [cell_result(cell, jobs[where[cell.name][0]], where[cell.name][1], settings,
+                        plan.warnings, sim_wall) for cell in cells]
+
+
+def _scene_note(note: str, scene: str) -> str:
+    """A batch plan's scene warning ('<file>: <scene path>: <message>') as its message."""
+    rest = note.split(": ", 1)[-1]
+    return rest[len(scene) + 2:] if rest.startswith(scene + ": ") else rest
+
+
+def _simulation_walls(csv_path: Path) -> dict[str, float | None]:
+    """{job: simulation wall time (s)} from the batch's ``batch.csv``."""
+    with open(csv_path, newline="") as fh:
+        return {r["job"]: (float(r["wall_s"]) if r.get("wall_s") else None)
+                for r in csv.DictReader(fh)}
+
+
+def cell_result(cell: Cell, job, label: str, settings: Settings, notes: list[str],
+                sim_wall: dict) -> dict:
+    """One cell from the batch's files: cell keys, ``time_s`` (the solve's wall time),
+    ``stages_s`` (dataset, deconvolve, solve, evaluate), the ``volume`` and ``dataset``
+    paths, the measured SNR and ``exact`` and ``reference`` metrics (``recon evaluate``'s)."""
+    from sonarsim.dataset import inspect
+    step = next(s for s in job.recon if s.label == label)
+    metrics, wall = {}, {}
+    for evaluation in step.evaluations:
+        saved = json.loads(Path(evaluation.output).read_text())
+        metrics[evaluation.name] = {k: v for k, v in saved["metrics"].items() if k != "sweep"}
+        wall = saved.get("wall_s", {})
+    with inspect(job.output) as (_, f):
+        measured = (f.get("meta") or {}).get("effective_snr_db", f.get("snr_db"))
+        mc = (f.get("meta") or {}).get("mc_snr_db")
+        n_pings = int(f["tx"].shape[0])
+    deconv = step.settings.get("deconvolve")
+    evaluate_s = sum(v for k, v in wall.items() if k.startswith("evaluate") and v)
+    m = METHOD_BY_KEY[cell.method]
+    return {"cell": cell.name, "method": cell.method, "label": m.label, "shape": cell.shape,
+            "snr_db": float(cell.snr_db), "bandwidth": cell.bandwidth,
+            "settings_digest": settings.digest(), "job": job.name, "step": label,
+            "dataset": job.output, "fitted": deconv["output"] if deconv else job.output,
+            "volume": step.output, "time_s": wall.get("solve"), "measured_snr_db": measured,
+            "mc_snr_db": mc, "n_pings": n_pings,
+            "notes": [f"scene {cell.shape}: {_scene_note(n, job.params['scene'])}"
+                      for n in notes
+                      if Path(n.split(": ", 1)[0]).stem == Path(job.params["scene"]).stem],
+            "reference": metrics["reference"], "exact": metrics["exact"],
+            "evaluate_s": evaluate_s,
+            "stages_s": {"dataset_s": sim_wall.get(job.name), "deconvolve_s": wall.get("deconvolve"),
+                         "solve_s": wall.get("solve"), "evaluate_s": evaluate_s}}
 
 
 # ------------------------------------------------------------------------------ outputs
@@ -547,27 +622,6 @@ def write_figure(path: Path, results, methods) -> None:
     plt.close(fig)
 
 
-def run_cells_on_cluster(cells, settings: "Settings", out: Path, source: str,
-                         scheduler: str) -> None:
-    """Compute the cells as jobs of sonarsim's batch engine (docs/batch.md) on a Dask cluster
-    (``scheduler``: an address, or 'local' for a LocalCluster): one task per dataset, and
-    one per cell that waits for its dataset. Each cell leaves its record in ``out/cells``,
-    where the sequential loop of :func:`main` then finds it."""
-    from sonarsim.batch_engine import Engine, Task
-    data, tasks = {}, []
-    for cell in cells:
-        key = f"data/{cell.dataset_name}"
-        data.setdefault(key, Task(key, ensure_dataset, (cell, settings, out, source)))
-        tasks.append(Task(f"cell/{cell.name}", run_cell, (cell.method, cell.shape, cell.snr_db,
-                          cell.bandwidth, settings, out, source), needs=(key,),
-                          pass_needed=False))
-    with Engine(None if scheduler == "local" else scheduler) as engine:
-        outcomes = engine.run(list(data.values()) + tasks)
-    failed = [f"{k}: {o.error}" for k, o in outcomes.items() if not o.ok]
-    if failed:
-        raise SystemExit("cells failed on the cluster:\n" + "\n".join(failed))
-
-
 # --------------------------------------------------------------------------------- main
 
 def parse_args(argv):
@@ -586,8 +640,7 @@ def parse_args(argv):
     ap.add_argument("--height-step", type=int)
     ap.add_argument("--paths-per-pose", type=int)
     ap.add_argument("--subsample", type=int, nargs=2, metavar=("ANGLES", "HEIGHTS"),
-                    help="reconstruct from every ANGLES-th angle and HEIGHTS-th height of the "
-                         "simulated scan (the dataset is simulated once at its own size)")
+                    help=argparse.SUPPRESS)     # removed: refused in one line (settings_from)
     ap.add_argument("--shape", type=int, nargs=3)
     ap.add_argument("--gd-iterations", type=int)
     ap.add_argument("--nbp-iterations", type=int)
@@ -599,10 +652,12 @@ def parse_args(argv):
                     help="metrics at τ only (no best-τ sweep of the exact protocol)")
     ap.add_argument("--deconvolution", choices=("wiener", "inr"),
                     help="pulse deconvolution of the GD and NBP cells' data (default wiener)")
-    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                    help="compute the cells as jobs on this Dask scheduler ('local': a "
-                         "LocalCluster; default: one after the other in this process); "
-                         "see docs/batch.md")
+    ap.add_argument("--scheduler", default="sequential", metavar="ADDRESS",
+                    help="where the batch's jobs run: 'sequential' (this process, the default), "
+                         "'local' (a Dask LocalCluster, see --workers) or a Dask scheduler "
+                         "address; docs/batch.md")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="worker processes of --scheduler local (default: the batch's choice)")
     return ap.parse_args(argv)
 
 
@@ -620,9 +675,9 @@ def settings_from(args) -> Settings:
     if args.shape:
         overrides["shape"] = tuple(args.shape)
     if args.subsample:
-        if min(args.subsample) < 1:
-            raise SystemExit("--subsample: both steps must be >= 1")
-        overrides["subsample_angle"], overrides["subsample_height"] = args.subsample
+        raise SystemExit("--subsample: removed (the table runs as a sonarsim batch, which "
+                         "simulates each scan it reconstructs): use --angle-step A "
+                         "--height-step H for a scan of every A-th angle and H-th height")
     return replace(settings, **overrides)
 
 
@@ -657,23 +712,19 @@ def main(argv: list[str] | None = None) -> int:
     summary = (f"{'quick' if args.quick else 'default'} size (digest {settings.digest()}): "
                f"cylindrical scan, every {settings.angle_step} of 360 angles × every "
                f"{settings.height_step} of 150 heights = {settings.n_poses} poses (reference "
-               f"54 000), reconstructed from {settings.n_pings} pings (every "
-               f"{settings.subsample_angle} angle(s) × {settings.subsample_height} height(s)), paths/pose {settings.paths_per_pose or 'simulator default (mc_snr_db)'}, "
+               f"54 000), paths/pose {settings.paths_per_pose or 'simulator default (mc_snr_db)'}, "
                f"single scattering, grid {'×'.join(map(str, settings.shape))}, GD "
                f"{settings.gd_iterations} / NBP {settings.nbp_iterations} iterations, "
+               f"{settings.deconvolution} deconvolution for GD and NBP, "
                f"{settings.samples} surface and {settings.volume_samples} volume samples")
     print(summary, flush=True)
-    if args.scheduler:
-        run_cells_on_cluster(cells, settings, out, args.scene_source, args.scheduler)
-    results = []
-    for cell in cells:
-        t0 = time.perf_counter()
-        r = run_cell(cell.method, cell.shape, cell.snr_db, cell.bandwidth, settings, out,
-                     args.scene_source)
-        results.append(r)
+    results = run_batch(cells, settings, out, args.scene_source, args.scheduler, args.workers)
+    for r in results:
         notes += r.get("notes", [])
         e, x = r["reference"], r["exact"]
-        print(f"{cell.name:>28}: {time.perf_counter() - t0:6.1f} s | reference: IoU "
+        stages = r["stages_s"]
+        print(f"{r['cell']:>28}: solve {fmt(stages.get('solve_s'), '.1f')} s, evaluate "
+              f"{fmt(stages.get('evaluate_s'), '.1f')} s | reference: IoU "
               f"{fmt(e['iou'], '.3f')}, C² {fmt(e['chamfer_sq'], '.2e')}, PSNR "
               f"{fmt(e.get('psnr_depth'), '.2f')} | exact: IoU {fmt(x['iou'], '.3f')}, C² "
               f"{fmt(x['chamfer_sq'], '.2e')}", flush=True)
@@ -689,9 +740,13 @@ def main(argv: list[str] | None = None) -> int:
          "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
          "peak_rss_mb": peak_mb, "n_pings": settings.n_pings}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())
-    stage_totals = {}
-    for r in results:      # cells loaded from an earlier run report their own stage times
+    stage_totals, jobs_seen = {}, set()
+    for r in results:      # cells of an earlier run report their own stage times
         for k, v in (r.get("stages_s") or {}).items():
+            if k == "dataset_s":            # one simulation per job, shared by its cells
+                if r["job"] in jobs_seen:
+                    continue
+                jobs_seen.add(r["job"])
             stage_totals[k] = stage_totals.get(k, 0.0) + (v or 0.0)
     usage = resource.getrusage(resource.RUSAGE_SELF)
     print("stages (s, summed over cells): "

@@ -1,6 +1,7 @@
-"""benchmarks/table2.py --quick end to end (the CI run of Table 2): every cell present, the
-stored metrics equal an independent re-evaluation of the stored volumes, labels are
-measurements, the Markdown means are the means of the cells, resuming recomputes nothing."""
+"""benchmarks/table2.py --quick end to end (the CI run of Table 2, a sonarsim batch): every
+cell present, the stored metrics equal an independent re-evaluation of the stored volumes,
+labels are measurements, the Markdown means are the means of the cells, resuming recomputes
+nothing; the manifest's jobs and steps."""
 from __future__ import annotations
 
 import csv
@@ -58,8 +59,18 @@ def test_every_cell_is_there_with_its_outputs(quick_run, table2):
     # the SNR sweep and the 5 kHz row are there, for the first shape
     assert {(c["snr_db"], c["bandwidth"]) for c in cells} == {(0.0, "20k"), (10.0, "20k"),
                                                                 (20.0, "20k"), (20.0, "5k")}
+    # every cell is a step of a sonarsim batch job: its volume and both protocols' metrics
+    # files carry the step's id (the batch's records), the batch table lists every job
+    jobs = {c["job"] for c in cells}
+    with open(quick_run / "batch" / "batch.csv", newline="") as fh:
+        rows = {r["job"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == jobs and all(r["status"] == "done" for r in rows.values())
     for c in cells:
-        assert (quick_run / "cells" / f"{c['cell']}_{settings.digest()}.json").is_file()
+        assert c["settings_digest"] == settings.digest()
+        assert Path(c["volume"]).parent == quick_run / "batch"
+        for protocol in ("reference", "exact"):
+            saved = json.loads(Path(c["volume"]).with_suffix(f".{protocol}.json").read_text())
+            assert saved["metrics"]["protocol"] == protocol and saved["job"] == c["job"]
 
 
 @pytest.mark.slow
@@ -154,42 +165,75 @@ def test_bp_and_pfa_put_energy_on_the_object(quick_run):
 
 
 @pytest.mark.slow
-def test_resume_recomputes_nothing_and_cells_run_alone(quick_run, table2):
-    cells_dir = quick_run / "cells"
-    before = {p.name: p.stat().st_mtime_ns for p in cells_dir.iterdir()}
+def test_resume_recomputes_nothing(quick_run):
+    """A second run finds every dataset, volume and metrics file of the batch complete and
+    its own: nothing is rewritten, the table is the same."""
+    batch = quick_run / "batch"
+    before = {p.name: p.stat().st_mtime_ns for p in batch.iterdir()
+              if p.suffix in (".h5", ".json")}
     md = (quick_run / "table2.md").read_text()
     proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(quick_run)],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert {p.name: p.stat().st_mtime_ns for p in cells_dir.iterdir()} == before
+    assert {p.name: p.stat().st_mtime_ns for p in batch.iterdir()
+            if p.suffix in (".h5", ".json")} == before
     assert (quick_run / "table2.md").read_text() == md
-    c = _result(quick_run)["cells"][0]
-    again = table2.run_cell(c["method"], c["shape"], c["snr_db"], c["bandwidth"],
-                            table2.SIZES["quick"], quick_run)
-    assert again == c
-    assert math.isfinite(again["reference"]["iou"])
+    assert "to run" in proc.stdout and " 0 to run" in proc.stdout
 
 
-def test_datasets_are_named_by_simulation_settings_only_and_subsampled_by_pose(table2):
-    """Changing a solver, grid or evaluation setting never re-simulates (the dataset's digest
-    covers the simulation only), changing the poses or the fidelity does; --subsample takes
-    every n-th angle and height of the simulated cylindrical scan (angle-fastest order)."""
-    from types import SimpleNamespace
-    base = table2.SIZES["default"]
-    for change in ({"nbp_iterations": 7}, {"shape": (10, 10, 10)}, {"samples": 5},
-                   {"subsample_angle": 5}, {"deconvolution": "inr"}):
+def test_manifest_jobs_are_datasets_and_steps_are_cells(table2, tmp_path):
+    """The manifest table2 writes plans as a sonarsim batch: one job per dataset whose pose
+    file holds exactly the table's cylindrical poses (every n-th angle and height, angle
+    fastest), one reconstruct step per cell. A solver, grid or evaluation setting changes
+    the steps' labels (new volumes), never a job (no re-simulation); the poses or the
+    fidelity change the jobs."""
+    from sonarsim.batch import plan_batch
+    from sonarsim.batch.identity import poses_digest
+    from sonarsim.geometry import CYLINDRICAL_ANGLES
+    base = table2.replace(table2.SIZES["quick"], angle_step=90, height_step=75)
+    cells = table2.cells_of(["bp", "gd", "pfa"], ["cube", "cylinder"], base)
+    doc, where = table2.manifest(cells, base, tmp_path)
+    assert len(doc["job"]) == 2 + 3        # 2 shapes + the SNR and 5 kHz rows (pfa: quick)
+    assert sorted(where) == sorted(c.name for c in cells)
+    path = tmp_path / "batch" / "table2.toml"
+    table2.write_manifest(doc, path)
+    plan = plan_batch(path, tmp_path / "batch", log=lambda m: None)
+    jobs = {j.name: j for j in plan.jobs}
+    assert set(jobs) == {j for j, _ in where.values()}
+    for cell in cells:
+        name, label = where[cell.name]
+        step = next(s for s in jobs[name].recon if s.label == label)
+        assert step.settings["module"] == table2.METHOD_BY_KEY[cell.method].module
+        assert (step.settings["deconvolve"] is not None) == (cell.method == "gd")
+        assert [e.name for e in step.evaluations] == ["reference", "exact"]
+    job = jobs[where[cells[0].name][0]]
+    idx = table2.cylindrical_indices(base)
+    assert len(idx) == base.n_poses == 4 * 2
+    assert np.all((idx % CYLINDRICAL_ANGLES) % 90 == 0) and np.all((idx // CYLINDRICAL_ANGLES) % 75 == 0)
+    import warnings
+
+    from sonarsim.scene import load_scene
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # the cube reaches below the ground
+        box = load_scene(job.params["scene"]).box
+    assert job.digests["poses"] == poses_digest(table2.cylindrical_poses(base, box))
+    for change in ({"nbp_iterations": 7}, {"gd_iterations": 7}, {"shape": (10, 10, 10)},
+                   {"samples": 5}, {"deconvolution": "inr"}):
         other = table2.replace(base, **change)
-        assert other.data_digest() == base.data_digest() and other.digest() != base.digest()
-    for change in ({"angle_step": 2}, {"paths_per_pose": 100}):
-        assert table2.replace(base, **change).data_digest() != base.data_digest()
-    sub = table2.replace(base, angle_step=10, height_step=10, subsample_angle=2,
-                         subsample_height=3)
-    per_height, heights = 36, 15
-    angle = np.tile(np.arange(per_height), heights)
-    height = np.repeat(np.arange(heights), per_height)
-    picked = []
-    ds = SimpleNamespace(n_pings=angle.size, select=lambda idx: picked.append(idx) or idx)
-    idx = table2.subsampled(ds, sub)
-    assert len(idx) == sub.n_pings == 18 * 5
-    assert np.all(angle[idx] % 2 == 0) and np.all(height[idx] % 3 == 0)
-    assert table2.subsampled(ds, table2.replace(sub, subsample_angle=1, subsample_height=1)) is ds
+        assert other.data_digest() == base.data_digest()
+        doc2, where2 = table2.manifest(cells, other, tmp_path)
+        assert {j for j, _ in where2.values()} == {j for j, _ in where.values()}
+        if "nbp_iterations" not in change:
+            assert where2[cells[1].name][1] != where[cells[1].name][1], change   # gd step
+    for change in ({"angle_step": 45}, {"paths_per_pose": 100}):
+        other = table2.replace(base, **change)
+        assert other.data_digest() != base.data_digest()
+        assert table2.job_name(cells[0], other) != table2.job_name(cells[0], base)
+
+
+def test_subsample_is_refused_in_one_line():
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--subsample", "5", "5", "--out",
+                           "/nonexistent/t2"], capture_output=True, text=True, timeout=120,
+                          cwd=ROOT)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "--angle-step" in proc.stderr.strip().splitlines()[-1]
