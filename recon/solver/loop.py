@@ -223,6 +223,10 @@ def make_scene(grid: Grid, settings: SolverSettings, network: bool):
     """The scene representation: :class:`recon.field.NetworkScene` or :class:`VoxelScene`."""
     if network:
         from ..field import NetworkScene, OccupancyScene
+        from ..scattering import make_scene as make_sh_scene
+        sh = make_sh_scene(grid, settings)
+        if sh is not None:
+            return sh
         kind = OccupancyScene if settings.occupancy else NetworkScene
         return kind(grid, settings, incoherent=settings.incoherent)
     return VoxelScene(grid, settings, incoherent=settings.incoherent)

@@ -42,7 +42,8 @@ def lanes_per_pass(settings: SolverSettings) -> int:
 
 def network_parameters(settings: SolverSettings) -> int:
     """Parameters of the network (:meth:`recon.field.NetworkSettings.network_parameters`)."""
-    return settings.network_parameters(3 if settings.occupancy else 2)
+    from ..scattering import n_outputs
+    return settings.network_parameters(n_outputs(settings))
 
 
 def bytes_per_lane(settings: SolverSettings, network: bool) -> int:

@@ -56,6 +56,7 @@ class SolverSettings(NetworkSettings):
     warm_start_iterations: int = 0
     warm_start_lr: float = 1e-2
     autocorrelation_taps: int = 0
+    scattering: str = "isotropic"
     # the exported volume (both representations): the fitted field, or its solid (recon.solid)
     output: str = "field"
     solid_threshold: float = 0.2
@@ -93,6 +94,8 @@ class SolverSettings(NetworkSettings):
             raise InputError(f"solid_close: must be an integer in [0, 10], got {self.solid_close}")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
+        from ..scattering import check_settings
+        check_settings(self)
 
 
 # Iterations between checkpoints: one default for recon gd/nbp, their Python API and the CLI.
@@ -100,7 +103,8 @@ CHECKPOINT_EVERY = 100
 
 # Fields that only the network reads (neither an option of recon gd nor a parameter of its
 # volumes).
-NETWORK_ONLY = ("hash_", "mlp_", "warm_start", "occupancy", "surface_tv", "solid_floor")
+NETWORK_ONLY = ("hash_", "mlp_", "warm_start", "occupancy", "surface_tv", "solid_floor",
+                "scattering")
 
 
 def applies_to(name: str, network: bool) -> bool:
@@ -163,6 +167,9 @@ HELP = {
                   "surface area; favours filled interiors and no floaters)",
     "solid_floor": "occupancy: o = 1 below the grid's lowest voxel plane (the rig's ground), "
                    "so the ground's echo is o's rise there and no slab of voxels",
+    "scattering": "NBP: 'isotropic' (σ(x)) or 'sh:L' (L = 0..4): the network outputs complex "
+                  "spherical-harmonic coefficients and σ depends on the look direction "
+                  "(SH-SAS, docs/scattering.md); the exported volume is c_00, the direction average",
     "output": "exported volume: 'field' (the fitted complex field) or 'solid' (its solid "
               "occupancy, 1 inside and 0 outside: recon.solid.solidify, docs/reconstruction.md)",
     "solid_threshold": "solid: occupied where |σ|/max|σ| exceeds this",
