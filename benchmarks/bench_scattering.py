@@ -14,7 +14,9 @@ steps after the first two (kernel compilation), each scattering in its own proce
 ``--subsample 5 5 --nbp-iterations 300``): the Wiener-deconvolved full-size scans
 (``<data>/<shape>_20k_20dB_b1916cbb_pd-wiener.h5``), every 5th angle and height (2 160 pings),
 preset nbp, seed 1, grid 125×125×94 over the reference's box; the volume is written to
-``DIR/volumes/`` and scored by recon.evaluation.evaluate_file (reference and exact protocols,
+``DIR/volumes/`` (with the network's parameters, ``*_params.npz``, and for SH fields also
+the RMS-over-directions export, ``*_rms.h5``, scored as ``rms_reference`` / ``rms_exact``) and
+scored by recon.evaluation.evaluate_file (reference and exact protocols,
 τ 0.2 and the τ sweep, no images), one JSON line per cell in ``DIR/cells.jsonl`` (resumable:
 a cell already there is skipped). The machine is shared: wall times are noisy, CPU times less.
 """
@@ -134,20 +136,28 @@ def shapes(args) -> None:
             p = {"scattering": sc, "iterations": args.iterations, "n_pings": int(ds.n_pings),
                  "solve_s": solve_s, "solve_cpu_s": solve_cpu,
                  "final_data_loss": float(history[-1]["data"]), **info}
-            vpath = out / "volumes" / f"nbp_{sc.replace(':', '')}_{shape}.h5"
+            tag = f"nbp_{sc.replace(':', '')}_{shape}"
+            vpath = out / "volumes" / f"{tag}.h5"
             Volume(volume=vol, bounds=np.asarray(grid.bounds), method="nbp",
                    params=json_safe(p)).write(vpath)
+            np.savez(out / "volumes" / f"{tag}_params.npz", **{k: np.asarray(v) for k, v in params.items()})
+            exports = {"": vpath}
+            if hasattr(scene, "rms_volume"):
+                exports["rms_"] = out / "volumes" / f"{tag}_rms.h5"
+                Volume(volume=scene.rms_volume(params, grid), bounds=np.asarray(grid.bounds),
+                       method="nbp", params=json_safe(dict(p, export="rms"))).write(exports["rms_"])
             gt = metrics.load_gt_mesh(raw)
             res = {"shape": shape, "scattering": sc, "volume": str(vpath), **p,
                    "step_s_median": float(np.median(wall[2:])),
                    "step_cpu_s_median": float(np.median(cpu[2:]))}
-            for protocol in ("reference", "exact"):
-                crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3] if protocol == "exact" else None
-                r = evaluate_file(vpath, gt, threshold=THRESHOLD, samples=SURFACE_SAMPLES,
-                                  crop=crop, protocol=protocol, volume_samples=VOLUME_SAMPLES,
-                                  images=False, sweep=True)
-                r.pop("sweep", None)
-                res[protocol] = r
+            for prefix, path in exports.items():
+                for protocol in ("reference", "exact"):
+                    crop = [-1e3, 1e3, -1e3, 1e3, CROP_Z, 1e3] if protocol == "exact" else None
+                    r = evaluate_file(path, gt, threshold=THRESHOLD, samples=SURFACE_SAMPLES,
+                                      crop=crop, protocol=protocol,
+                                      volume_samples=VOLUME_SAMPLES, images=False, sweep=True)
+                    r.pop("sweep", None)
+                    res[prefix + protocol] = r
             with open(cells, "a") as f:
                 f.write(json.dumps(json_safe(res), default=str) + "\n")
             ref = res["reference"]

@@ -25,7 +25,8 @@ SH-SAS writes the same model with Y_lm, i.e. coefficients √(4π) times ours.
 Which value plays which role (as SH-SAS): the scattered amplitude summed over the rays is
 σ(x, ω); the transmittance and the Lambertian normals (−∇|σ|) use the *density* c_00; the
 exported volume is c_00 (complex: the direction-averaged scattering; its magnitude is what
-``recon evaluate`` thresholds). The priors that re-evaluate the field at shifted points
+``recon evaluate`` thresholds); :meth:`ShNetworkScene.rms_volume` gives the alternative
+√(Σ|c_lm|²), the RMS of σ over directions (docs/scattering.md compares both). The priors that re-evaluate the field at shifted points
 (smoothness, phase) see c_00; sparsity and TV act on the scattered σ(x, ω) of each sample.
 
 Look direction ω: the unit vector from the sample point toward the midpoint of its ping's
@@ -153,6 +154,24 @@ class ShNetworkScene(NetworkScene):
 
     def bind(self, params: dict) -> "BoundShNetwork":
         return BoundShNetwork(self, params)
+
+    def rms_volume(self, params: dict, grid: Grid | None = None, chunk: int = 1 << 17) -> np.ndarray:
+        """The RMS of σ(x, ω) over uniform directions, √(Σ_lm |c_lm|²) (Parseval), on ``grid``
+        (default: the scene's) [nx, ny, nz] float32: an alternative export that also sees points
+        scattering toward a few directions only (the exported volume is c_00, :meth:`volume`)."""
+        import drjit as dr
+        m = self.m
+        grid = self.grid if grid is None else grid
+        detached = {k: dr.detach(v) for k, v in params.items()}
+        out = np.empty(grid.size, dtype=np.float32)
+        with dr.suspend_grad():
+            for s in range(0, grid.size, chunk):
+                pts = grid.points_range(s, s + chunk).T.astype(np.float32)
+                coeffs = self.coefficients(detached, m.Array3f(*(m.Float(a) for a in pts)))
+                energy = sum(np.asarray(re, np.float64) ** 2 + np.asarray(im, np.float64) ** 2
+                             for re, im in coeffs)
+                out[s:s + pts.shape[1]] = np.sqrt(energy)
+        return out.reshape(grid.shape)
 
 
 class BoundShNetwork(BoundNetwork):

@@ -227,3 +227,32 @@ def test_only_the_sh_field_fits_a_direction_dependent_echo():
     sh1_misfit = _fit(sh1, samples, t, iterations=40, lr=2e-2)
     assert iso_misfit > 0.03
     assert sh1_misfit < 0.25 * iso_misfit
+
+
+def test_rms_volume_is_the_rms_over_directions(grid):
+    """rms_volume = √(mean over the sphere of |σ(x, ω)|²), the mean by a product quadrature
+    exact for |σ|² of an sh:2 field (Gauss–Legendre in cos θ × uniform φ)."""
+    settings = NetworkSettings(**SMALL_NET)
+    scene = S.ShNetworkScene(grid, settings, 2)
+    rng = np.random.default_rng(6)
+    p = scene.initial(rng)
+    p["grid"] = rng.uniform(-1, 1, p["grid"].shape).astype(np.float32)
+    m = scene.m
+    params = {k: m.Float(v) for k, v in p.items()}
+    small = Grid(grid.bounds, (4, 4, 3))
+    got = scene.rms_volume(params, small).ravel()
+    pts = small.points().astype(np.float32)              # [N, 3], the volume's order
+    mu, w_mu = np.polynomial.legendre.leggauss(5)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    mean = np.zeros(len(pts))
+    for c, wc in zip(mu, w_mu):
+        for f in phi:
+            d = np.array([np.sqrt(1 - c * c) * np.cos(f), np.sqrt(1 - c * c) * np.sin(f), c])
+            dirs = m.Array3f(*(m.Float(np.full(len(pts), d[a], np.float32)) for a in range(3)))
+            re, im = scene.scatter(params, m.Array3f(*(m.Float(pts[:, a].copy()) for a in range(3))),
+                                   dirs)
+            mean += wc * (2 * np.pi / 8) * (np.asarray(re) ** 2 + np.asarray(im) ** 2) / (4 * np.pi)
+    assert got.max() > 0.1
+    np.testing.assert_allclose(got, np.sqrt(mean), rtol=2e-4, atol=1e-6)
+    c00 = scene.volume(params, small).ravel()
+    assert np.all(got >= np.abs(c00) * (1 - 1e-5))
