@@ -92,7 +92,9 @@ def cached_gt(kind: str, mesh: trimesh.Trimesh, args: tuple, compute):
         _GT_CACHE.move_to_end(key)
         return _GT_CACHE[key]
     value = compute()
-    for a in (value if isinstance(value, tuple) else (value,)):
+    parts = value.values() if isinstance(value, dict) else \
+        (value if isinstance(value, tuple) else (value,))
+    for a in parts:
         if isinstance(a, np.ndarray):
             a.flags.writeable = False
     _GT_CACHE[key] = value

@@ -146,7 +146,12 @@ def image_metrics(gt_mesh: trimesh.Trimesh, mesh: trimesh.Trimesh,
     the data range of the reconstruction's images, SSIM with torchmetrics' Gaussian window and
     data range 1; the shaded images get the same treatment.
     """
-    ref, test = render_views(gt_mesh, cams), render_views(mesh, cams)
+    from dataclasses import astuple
+
+    from .metrics import cached_gt
+    ref = cached_gt("renders", gt_mesh, astuple(cams),            # once per GT and cameras
+                    lambda: render_views(gt_mesh, cams))
+    test = render_views(mesh, cams)
     out = {}
     for kind in ("depth", "shaded"):
         if reference:
