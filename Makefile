@@ -23,11 +23,16 @@ llvm: $(STAMP)
 demo: install
 	$(PY) scripts/demo.py --out $(DEMO)
 
+# Two pytest-xdist workers, whole files per worker (module fixtures are built once), the
+# costliest files first (tests/conftest.py COSTLIEST_FIRST); TEST_WORKERS=0 runs serially.
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder)
+
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(XDIST)
 
 test-fast: install
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q $(XDIST) -m "not slow"
 
 # The Python API reference (pdoc, from the docstrings) into docs/api/ (not committed).
 docs: install
