@@ -256,3 +256,45 @@ def test_rms_volume_is_the_rms_over_directions(grid):
     np.testing.assert_allclose(got, np.sqrt(mean), rtol=2e-4, atol=1e-6)
     c00 = scene.volume(params, small).ravel()
     assert np.all(got >= np.abs(c00) * (1 - 1e-5))
+
+
+def test_solver_builds_the_sh_scene_from_the_setting(grid):
+    from recon import solver
+    settings = solver.settings_for("nbp", network=True, scattering="sh:2", **SMALL_NET)
+    scene = solver.make_scene(grid, settings, network=True)
+    assert isinstance(scene, S.ShNetworkScene) and scene.degree == 2
+    assert scene.shapes[-1][0] == 18
+    iso = solver.make_scene(grid, solver.settings_for("nbp", network=True, **SMALL_NET), True)
+    assert type(iso) is NetworkScene
+    # the memory estimate counts the 18 outputs: 32 more weights per extra output
+    assert (solver.resources.network_parameters(settings)
+            - solver.resources.network_parameters(solver.settings_for("nbp", network=True,
+                                                                      **SMALL_NET))) == 16 * 32
+
+
+@pytest.mark.parametrize("extra", [["--scattering", "sh:9"], ["--scattering", "sh:1", "--occupancy"],
+                                   ["--scattering", "sh:1", "--incoherent"]])
+def test_cli_refuses_bad_scattering_in_one_line(tmp_path, capsys, extra):
+    from recon.cli import main
+    rc = main(["nbp", str(tmp_path / "none.h5"), "--out", str(tmp_path / "v.h5"), *extra])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0
+    assert "scattering" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_cli_sh_run_exports_c00(point_target_scan, tmp_path, capsys):
+    from recon.cli import main
+    src = tmp_path / "d.h5"
+    point_target_scan.write(src)
+    out = tmp_path / "v.h5"
+    rc = main(["nbp", str(src), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
+               "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
+               "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--n-rays", "200",
+               "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth-deg", "5",
+               "--seed", "3", "--init", "random", "--scattering", "sh:1", "--out", str(out),
+               "--no-progress"])
+    assert rc == 0
+    from sonarsim.dataset import Volume
+    vol = Volume.read(out)
+    assert vol.params["scattering"] == "sh:1" and vol.shape == (9, 9, 9)
+    assert np.abs(vol.volume).max() > 0 and np.all(np.isfinite(vol.volume))
