@@ -24,6 +24,10 @@ the rendered waveforms match the dataset's:
   shape-optimisation tutorial; the mesh is remeshed isotropically
   (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) between segments, which keeps the
   triangles well shaped.
+* **Support stage** (optional, first): the mesh is cut into patches with one albedo each;
+  the albedos are fitted to the envelopes with the geometry fixed and the patches the data
+  leave dark (below ``support_keep`` × the median) are removed: floaters and smears of the
+  start volume, which moving vertices cannot delete.
 * **Pings.** The chosen pings are split into interleaved batches (each spans the aperture);
   one batch per step.
 
@@ -58,6 +62,12 @@ class RefineSettings:
     between the object and the ground). surface_spacing: the integrator's strata size (m);
     path_samples: its path-length quantiles per stratum. oversample: histogram bins per
     sample (None: the dataset's, else 20). seed: the batch order and the renderer's seeds.
+
+    support_steps: steps of the support stage that runs first (0: none): the mesh is cut
+    into patches of about ``patch_size`` (m, k-means of the face centroids), each patch's
+    albedo is fitted to the envelopes (log-albedo, Adam step ``support_lr``) with the
+    geometry fixed, and the patches whose albedo ends below ``support_keep`` × the
+    area-weighted median are removed (surface the data does not support: floaters, smears).
     """
 
     envelope_steps: int = 120
@@ -73,20 +83,27 @@ class RefineSettings:
     path_samples: int = 4
     oversample: int | None = None
     seed: int = 0
+    support_steps: int = 0
+    patch_size: float = 0.025
+    support_keep: float = 0.7
+    support_lr: float = 0.1
 
     def validate(self) -> None:
-        for name in ("envelope_steps", "waveform_steps", "remesh_every"):
+        for name in ("envelope_steps", "waveform_steps", "remesh_every", "support_steps"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
                 raise InputError(f"{name} must be a non-negative integer, got {getattr(self, name)}")
         for name in ("pings_per_batch", "bounces", "path_samples"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer, got {getattr(self, name)}")
-        for name in ("lr", "large_steps_lambda", "edge_length", "surface_spacing"):
+        for name in ("lr", "large_steps_lambda", "edge_length", "surface_spacing", "patch_size",
+                     "support_lr"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a positive number, got {v}")
-        if self.envelope_steps + self.waveform_steps == 0:
-            raise InputError("nothing to do: envelope_steps + waveform_steps is 0")
+        if not (np.isfinite(self.support_keep) and 0 <= self.support_keep < 1):
+            raise InputError(f"support_keep must be in [0, 1), got {self.support_keep}")
+        if self.envelope_steps + self.waveform_steps + self.support_steps == 0:
+            raise InputError("nothing to do: support_steps + envelope_steps + waveform_steps is 0")
 
 
 @dataclass
@@ -143,6 +160,52 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
     return np.asarray(v, np.float64), np.asarray(f, np.int64)
 
 
+def patch_labels(vertices: np.ndarray, faces: np.ndarray, patch_size: float, seed: int = 0,
+                 max_patches: int = 400) -> np.ndarray:
+    """Patch index per face [F]: k-means (scipy) of the face centroids into about
+    area / patch_size² patches (at most ``max_patches``), numbered 0..K−1 without gaps."""
+    from scipy.cluster.vq import kmeans2
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    k = int(np.clip(round(area / patch_size ** 2), 1, min(max_patches, len(faces))))
+    if k == 1:
+        return np.zeros(len(faces), np.int64)
+    _, labels = kmeans2(tri.mean(axis=1), k, seed=seed, minit="++")
+    return np.unique(labels, return_inverse=True)[1].astype(np.int64)
+
+
+def supported_faces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                    albedo: np.ndarray, keep: float) -> np.ndarray:
+    """Mask [F] of the faces whose patch albedo is ≥ ``keep`` × the area-weighted median of
+    the patch albedos (the support stage's verdict)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    patch_area = np.bincount(labels, weights=area, minlength=len(albedo))
+    order = np.argsort(albedo)
+    cum = np.cumsum(patch_area[order])
+    median = albedo[order][np.searchsorted(cum, 0.5 * cum[-1])]
+    return albedo[labels] >= keep * median
+
+
+def _patch_centres(vertices, faces, labels, n_patches) -> np.ndarray:
+    """Area-weighted centre [K, 3] (m) of each patch."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    w = np.bincount(labels, weights=area, minlength=n_patches)
+    return np.stack([np.bincount(labels, weights=area * tri.mean(axis=1)[:, a], minlength=n_patches)
+                     for a in range(3)], axis=1) / np.maximum(w, 1e-30)[:, None]
+
+
+def drop_faces(vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray,
+               min_component: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """The faces ``mask`` keeps, without unused vertices, and without the connected
+    components smaller than ``min_component`` × the largest (faces)."""
+    kept = trimesh.Trimesh(vertices, np.asarray(faces)[mask], process=False)
+    kept.remove_unreferenced_vertices()
+    kept = largest_components(kept, min_component)
+    return np.asarray(kept.vertices, np.float64), np.asarray(kept.faces, np.int64)
+
+
 # ------------------------------------------------------------------------ the model
 
 def dataset_window(dataset, oversample: int) -> tuple[float, float, int]:
@@ -183,14 +246,14 @@ class RenderedScene:
     """The mesh, the ground and the sonar as one Mitsuba scene for ``mi.render``.
 
     ``mesh``: trimesh (m); ``dataset``: its pings and beams; ``window``: (start, width, bins).
+    ``labels``: optional patch index per face [F] (0..K−1): each patch becomes its own shape
+    with its own albedo (the support stage); the patches share one vertex buffer.
     :meth:`render` returns the histograms [n, bounces, bins] of a batch of pings as a
-    Dr.Jit tensor that carries the gradients of ``vertex_positions`` and the albedo.
+    Dr.Jit tensor that carries the gradients of the vertex buffer and the albedo(s).
     """
 
-    KEY_V = "target.vertex_positions"
-
     def __init__(self, mesh: trimesh.Trimesh, dataset, window, ground, settings: RefineSettings,
-                 workdir):
+                 workdir, labels: np.ndarray | None = None):
         from pathlib import Path
         from sonarsim import runtime
         self.mi = mi = runtime.mitsuba()
@@ -198,8 +261,11 @@ class RenderedScene:
         self.dr = dr
         beams = {k: v for k, v in dict(dataset.meta.get("beams") or {}).items()
                  if k in ("tx_beam", "tx_beamwidth", "rx_beam", "rx_beamwidth")}
-        path = Path(workdir) / f"mesh_{len(mesh.faces)}_{id(mesh)}.ply"
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+        v = np.asarray(mesh.vertices, np.float64)
+        f = np.asarray(mesh.faces, np.int64)
+        labels = np.zeros(len(f), np.int64) if labels is None else np.asarray(labels, np.int64)
+        self.n_patches = int(labels.max()) + 1 if len(labels) else 1
+        self._v0, self._f0 = v, f
         start, width, bins = window
         items = {"type": "scene",
                  "integrator": {"type": "sonar_transient", "max_bounces": settings.bounces,
@@ -208,33 +274,49 @@ class RenderedScene:
                  "sensor": {"type": "sonar", "tx_origin": [0.0, 0.0, 1.0],
                             "tx_boresight": [0.0, 0.0, -1.0],
                             "film": {"type": "sonar_film", "temporal_bins": int(bins),
-                                     "start_opl": float(start), "bin_width_opl": float(width)}},
-                 "target": {"type": "ply", "filename": str(path), "bsdf": _diffuse(mi, 1.0)}}
+                                     "start_opl": float(start), "bin_width_opl": float(width)}}}
+        patches = []
+        for p in range(self.n_patches):
+            fp = f[labels == p]
+            if len(fp) == 0:
+                continue
+            used, local = np.unique(fp.ravel(), return_inverse=True)
+            path = Path(workdir) / f"patch{p}_{len(fp)}_{id(mesh)}.ply"
+            trimesh.Trimesh(v[used], local.reshape(-1, 3), process=False).export(path)
+            items[f"target{p}"] = {"type": "ply", "filename": str(path), "bsdf": _diffuse(mi, 1.0)}
+            patches.append((p, mi.UInt32((3 * used[:, None] + np.arange(3)).ravel().astype(np.uint32))))
         if ground is not None:
             items["ground"] = {"type": "rectangle", "bsdf": _diffuse(mi, ground[2]),
                                "to_world": mi.ScalarTransform4f().scale(
                                    [ground[0] / 2, ground[1] / 2, 1.0])}
         self.scene = mi.load_dict(items)
         self.params = mi.traverse(self.scene)
-        self.key_albedo = next(k for k in self.params.keys()
-                               if k.startswith("target.bsdf") and k.endswith("reflectance.value"))
+        keys = list(self.params.keys())
+        self._patches = [(p, f"target{p}.vertex_positions", idx,
+                          next(k for k in keys if k.startswith(f"target{p}.bsdf")
+                               and k.endswith("reflectance.value"))) for p, idx in patches]
         self.tx, self.rx = np.asarray(dataset.tx), np.asarray(dataset.rx)
         self.tx_dir, self.rx_dir = np.asarray(dataset.boresight), np.asarray(dataset.receiver_boresight)
 
     @property
     def vertices(self):
-        """The scene's vertex buffer (Dr.Jit Float [V·3]) and faces (UInt32 [F·3])."""
-        return self.params[self.KEY_V], self.params["target.faces"]
+        """The shared vertex buffer (Dr.Jit Float [V·3], m) and faces (UInt32 [F·3])."""
+        mi = self.mi
+        return (mi.Float(self._v0.ravel().astype(np.float32)),
+                mi.UInt32(self._f0.ravel().astype(np.uint32)))
 
     def render(self, vertices, albedo, index: np.ndarray, seed: int):
-        """Histograms [n, bounces, bins] (TensorXf, differentiable) of pings ``index``."""
+        """Histograms [n, bounces, bins] (TensorXf, differentiable) of pings ``index``;
+        ``albedo``: Float of width 1 (all patches) or K (one per patch)."""
         mi, dr = self.mi, self.dr
         vec = lambda a: mi.Point3f(*(mi.Float(a[index, i].astype(np.float32)) for i in range(3)))
         p = self.params
         p["sensor.tx_origin"], p["sensor.rx_origin"] = vec(self.tx), vec(self.rx)
         p["sensor.tx_boresight"], p["sensor.rx_boresight"] = vec(self.tx_dir), vec(self.rx_dir)
-        p[self.KEY_V] = vertices
-        p[self.key_albedo] = albedo
+        per_patch = dr.width(albedo) > 1
+        for patch, key_v, idx, key_albedo in self._patches:
+            p[key_v] = dr.gather(mi.Float, vertices, idx)
+            p[key_albedo] = dr.gather(mi.Float, albedo, mi.UInt32(patch)) if per_patch else albedo
         p.update()
         out = mi.render(self.scene, p, seed=seed, seed_grad=seed + 0x5EED)
         return out if len(index) > 1 else out[None]
@@ -300,16 +382,59 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     log_albedo = 0.0
     plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
     history, step, order = [], 0, np.arange(n_batches)
-    bar = progress_bar(sum(n for _, n in plan), progress, unit="step", desc="refine")
+    bar = progress_bar(settings.support_steps + sum(n for _, n in plan), progress, unit="step",
+                       desc="refine")
     t0 = time.perf_counter()
+    support = None
     with tempfile.TemporaryDirectory(prefix="refine-") as workdir:
         try:
+            if settings.support_steps:
+                labels = patch_labels(vertices, faces, settings.patch_size, settings.seed)
+                model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
+                                      window, ground, settings, workdir, labels)
+                opt_rho = mi.ad.Adam(lr=settings.support_lr)
+                opt_rho["log_albedo"] = mi.Float(np.zeros(model.n_patches, np.float32))
+                v_fixed = model.vertices[0]
+                for j in range(settings.support_steps):
+                    if step % n_batches == 0:
+                        order = rng.permutation(n_batches)
+                    b = int(order[step % n_batches])
+                    hist = model.render(v_fixed, dr.exp(opt_rho["log_albedo"]), batches[b],
+                                        settings.seed * 100_003 + 2 * step)
+                    h = hist.numpy().astype(np.float64).sum(axis=1)
+                    loss, alpha, grad = objective("envelope", h, b, batches[b])
+                    g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
+                    dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+                    opt_rho.step()
+                    history.append({"step": step, "stage": "support", "loss": loss, "alpha": alpha,
+                                    "albedo": None, "seconds": time.perf_counter() - t0})
+                    step += 1
+                    bar.update(1)
+                patch_albedo = np.exp(np.asarray(opt_rho["log_albedo"].numpy(), np.float64))
+                keep = supported_faces(vertices, faces, labels, patch_albedo, settings.support_keep)
+                if not keep.any():
+                    raise InputError("the support stage found no patch the data supports")
+                n_before = len(faces)
+                model_vertices, model_faces = vertices, faces
+                vertices, faces = drop_faces(vertices, faces, keep)
+                support = {"patches": int(model.n_patches),
+                           "patches_kept": int(len(np.unique(labels[keep]))),
+                           "faces_before": int(n_before), "faces_after": int(len(faces)),
+                           "patch_albedo": patch_albedo.round(4).tolist(),
+                           "patch_centres": [np.round(c, 4).tolist() for c in _patch_centres(
+                               model_vertices, model_faces, labels, model.n_patches)]}
+                del model
+                if log is not None:
+                    recent = [h["loss"] for h in history[-min(settings.support_steps, 2 * n_batches):]]
+                    log(f"support steps {settings.support_steps}: loss {np.mean(recent):.4f}, kept "
+                        f"{support['patches_kept']}/{support['patches']} patches, "
+                        f"{len(faces)}/{n_before} faces, {time.perf_counter() - t0:.0f} s")
             for stage, n_steps in plan:
                 done = 0
                 while done < n_steps:
                     seg = n_steps - done if not settings.remesh_every else min(
                         settings.remesh_every, n_steps - done)
-                    if step > 0:
+                    if step > 0 and history[-1]["stage"] != "support":
                         vertices, faces = remesh(vertices, faces, settings.edge_length)
                     model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
                                           window, ground, settings, workdir)
@@ -354,4 +479,4 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
             bar.close()
     return RefineResult(vertices, faces, float(np.exp(log_albedo)) if fit_albedo else None,
                         history, {**asdict(settings), "pings": int(len(index)),
-                                  "ground": ground, "oversample": k})
+                                  "ground": ground, "oversample": k, "support": support})

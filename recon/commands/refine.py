@@ -28,6 +28,11 @@ OPTION_HELP = {
     "fit_albedo": "fit the object's albedo relative to the ground's",
     "oversample": "histogram bins per sample (default: the dataset's)",
     "seed": "order of the batches and the renderer's random numbers",
+    "support_steps": "steps of the support stage (per-patch albedo fit, then unsupported patches "
+                     "removed) before the geometry stages; 0: none",
+    "patch_size": "support stage: patch size (m)",
+    "support_keep": "support stage: keep patches whose albedo is >= this x the area-weighted median",
+    "support_lr": "support stage: Adam step of the log-albedos",
 }
 
 
