@@ -83,3 +83,25 @@ def test_gt_cache_shares_equal_meshes_only_and_changes_no_metric():
     warm = both()
     assert n_entries >= 3 and len(metrics._GT_CACHE) == n_entries
     assert warm == cold
+
+
+def test_sweep_voxel_chamfer_equals_the_direct_one():
+    """The sweep's shared voxel queries (Evaluator.prepare_sweep) give exactly the voxel
+    Chamfer of each threshold's own occupied voxels, including thresholds whose nearest
+    voxels lie beyond the shared neighbour lists (few voxels above a high threshold)."""
+    from recon import export
+    rng = np.random.default_rng(5)
+    x, y, z = np.meshgrid(*[np.linspace(-0.2, 0.2, 25)] * 2, np.linspace(0, 0.3, 19),
+                          indexing="ij")
+    vol = np.exp(-(x ** 2 + y ** 2 + (z - 0.08) ** 2) / 0.004) + 0.3 * rng.random(x.shape)
+    bounds = np.array([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]])
+    gt = trimesh.creation.icosphere(2, 0.06)
+    gt.apply_translation((0.02, 0, 0.08))
+    metrics._GT_CACHE.clear()
+    ev = metrics.Evaluator(vol, bounds, gt, n_samples=400)
+    ev.prepare_sweep(0.05)
+    assert ev._sweep["knn_dist"].shape[1] == metrics.Evaluator.SWEEP_NEIGHBOURS
+    on_a_voxel = float(np.sort(ev.magnitude, axis=None)[-50])     # a tie: mag == t
+    for t in (0.05, 0.3, 0.6, 0.95, 0.999, on_a_voxel):
+        pts = export.occupied_points(ev.magnitude, ev.bounds, t)
+        assert ev._voxel_chamfer(t, pts) == metrics.chamfer(ev.gt_surface, pts), t
