@@ -2,12 +2,15 @@
 back-propagate a waveform-domain gradient to the vertices (the work of every optimiser step).
 
     python benchmarks/bench_refine.py DATASET.h5 [--pings-per-batch 64] [--bounces 1 2]
-        [--edge-length 0.005] [--repeats 2] [--out result.json]
+        [--edge-length 0.005] [--patch-size 0.025] [--repeats 2] [--out result.json]
 
 The mesh is the dataset's ground-truth mesh remeshed to --edge-length (the size the refinement
 works at); the ground is the dataset's. Prints one JSON line per bounce count: faces, pings,
 seconds (wall, best of --repeats after one warm-up) and CPU seconds (user+sys of the process)
-for the forward render and for forward + backward. On a shared machine report CPU time.
+for the forward render and for forward + backward. ``--patch-size``: the support stage's
+scene instead (the mesh cut into patches of that size, one albedo each; the backward pass
+then also yields the per-patch albedo gradients), with its scene-building time. On a shared
+machine report CPU time.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ def cpu_seconds() -> float:
     return t.user + t.system
 
 
-def measure(ds, mesh, bounces: int, n_pings: int, repeats: int) -> dict:
+def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None) -> dict:
     from recon import refine
     from sonarsim import runtime
     mi = runtime.mitsuba()
@@ -40,14 +43,21 @@ def measure(ds, mesh, bounces: int, n_pings: int, repeats: int) -> dict:
     window = refine.dataset_window(ds, k)
     index = np.linspace(0, ds.n_pings - 1, n_pings).astype(int)
     rows = []
+    labels = None if patch_size is None else refine.patch_labels(mesh.vertices, mesh.faces,
+                                                                 patch_size)
     with tempfile.TemporaryDirectory() as workdir:
-        scene = refine.RenderedScene(mesh, ds, window, refine.dataset_ground(ds), settings, workdir)
+        t_build, c_build = time.perf_counter(), cpu_seconds()
+        scene = refine.RenderedScene(mesh, ds, window, refine.dataset_ground(ds), settings, workdir,
+                                     labels)
+        t_build, c_build = time.perf_counter() - t_build, cpu_seconds() - c_build
         v0, _ = scene.vertices
         for rep in range(repeats + 1):
             v = mi.Float(v0)
             dr.enable_grad(v)
+            albedo = mi.Float(np.ones(scene.n_patches if labels is not None else 1, np.float32))
+            dr.enable_grad(albedo)
             t0, c0 = time.perf_counter(), cpu_seconds()
-            hist = scene.render(v, mi.Float(1.0), index, seed=rep)
+            hist = scene.render(v, albedo, index, seed=rep)
             h = hist.numpy()
             t1, c1 = time.perf_counter(), cpu_seconds()
             weight = mi.TensorXf(np.ones(h.shape, np.float32))
@@ -56,6 +66,8 @@ def measure(ds, mesh, bounces: int, n_pings: int, repeats: int) -> dict:
             rows.append((t1 - t0, c1 - c0, time.perf_counter() - t0, cpu_seconds() - c0))
     best = min(rows[1:], key=lambda r: r[2])
     return {"bounces": bounces, "faces": int(len(mesh.faces)), "pings": int(n_pings),
+            "patches": int(scene.n_patches) if labels is not None else None,
+            "build_s": round(t_build, 3), "build_cpu_s": round(c_build, 3),
             "bins": int(window[2]), "forward_s": round(best[0], 3), "forward_cpu_s": round(best[1], 3),
             "step_s": round(best[2], 3), "step_cpu_s": round(best[3], 3)}
 
@@ -68,6 +80,8 @@ def main(argv=None) -> int:
     p.add_argument("--pings-per-batch", type=int, default=64)
     p.add_argument("--bounces", type=int, nargs="+", default=[1, 2])
     p.add_argument("--edge-length", type=float, default=5e-3)
+    p.add_argument("--patch-size", type=float, default=None,
+                   help="measure the support stage's patch scene (patch size, m)")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -76,7 +90,8 @@ def main(argv=None) -> int:
         p.error(f"{args.dataset} has no ground-truth mesh")
     v, f = refine.remesh(ds.gt_vertices, ds.gt_faces, args.edge_length)
     mesh = trimesh.Trimesh(v, f, process=False)
-    results = [measure(ds, mesh, b, args.pings_per_batch, args.repeats) for b in args.bounces]
+    results = [measure(ds, mesh, b, args.pings_per_batch, args.repeats, args.patch_size)
+               for b in args.bounces]
     for r in results:
         print(json.dumps(r))
     if args.out is not None:
