@@ -310,6 +310,7 @@ def test_refine_command_writes_a_mesh_and_refuses_bad_input(ball_scan, tmp_path,
     # an existing output is refused without --force; bad values are one line, exit 2
     for bad, words in ((args, "file exists"),
                        ([*args, "--force", "--bounces", "0"], "bounces must be a positive integer"),
+                       ([*args, "--force", "--support-keep", "1.5"], "support_keep must be in [0, 1)"),
                        ([str(ball_scan), "--init", str(tmp_path / "none.ply"), "--out",
                          str(tmp_path / "x.ply")], "not found")):
         assert main(["refine", *bad]) == 2
