@@ -2,10 +2,12 @@
 (the reference's ``--no_network`` baseline: the same sampling, forward model, loss and
 optimiser as neural backprojection, :mod:`recon.nbp`).
 
-Defaults (docs/reconstruction.md, "Gradient descent"): start from the backprojection scaled
-by its least-squares factor through the linear model, a learning rate relative to that
-voxel scale decaying from 2e-2 to 2e-3, Lambertian factor and occlusion (s_occ 500), no
-priors; 5 pings × 110 bins × 2000 rays per step. Presets: see :data:`recon.solver.PRESETS`.
+Defaults (the frozen preset ``gd``, docs/reconstruction.md, "Presets"): start from the
+backprojection scaled by its least-squares factor through the linear model, a learning rate
+relative to that voxel scale decaying from 2e-2 to 2e-3, the linear model (no Lambertian
+factor, no occlusion) with sparsity 2 in energy units from step 200; 5 pings × 110 bins ×
+2000 rays per step. The exported volume is the solid occupancy of the fitted voxels
+(:mod:`recon.solid`, threshold 0.4; ``output='field'`` exports the voxels themselves).
 
 Grid mapping (a quirk of the reference fixed): the optimised voxels are exactly the
 :class:`~recon.grid.Grid` centres, trilinear in between and zero outside, so GD and BP

@@ -20,7 +20,7 @@ SEED = 11
 # an absolute learning rate: these tests check that GD alone (not the BP start) fits the data.
 FAST = dict(lambertian=False, occlusion_scale=0.0, sparsity=0.0, bins_per_ping=32,
             n_rays=1200, beamwidth_deg=5.0, lr=3e-2, lr_final=1e-3, pings_per_iteration=10,
-            init="random", lr_units="absolute")
+            init="random", lr_units="absolute", output="field")
 
 
 @pytest.fixture(scope="module")
@@ -206,7 +206,7 @@ def test_default_gd_is_not_worse_than_backprojection_on_point_targets():
                                  heights=np.linspace(0.0, 0.25, 5))
     g = Grid([[-0.016, 0.016], [-0.016, 0.016], [0.082, 0.114]], (17, 17, 17))
     kw = dict(n_rays=800, beamwidth_deg=5.0, bins_per_ping=32, pings_per_iteration=10,
-              lambertian=False, occlusion_scale=0.0)
+              lambertian=False, occlusion_scale=0.0, output="field")
     vol = gd.solve(ds, g, iterations=150, seed=3, progress=False, **kw)
     x_bp = bp.backproject(ds, g, progress=False)
     e_gd, e_bp = _energy_near(vol.volume, g, pts, 0.008), _energy_near(x_bp, g, pts, 0.008)
@@ -301,6 +301,9 @@ def test_frozen_presets_are_every_entry_points_default():
     assert nbp.settings_for() == solver.settings_for("cpu", network=True)
     fields = {f.name for f in dataclasses.fields(solver.SolverSettings)}
     assert set(solver.PRESETS["gd"]) <= fields and set(solver.PRESETS["nbp"]) <= fields
+    # both export the solid occupancy (recon.solid), each with its measured threshold
+    assert solver.PRESETS["gd"]["output"] == solver.PRESETS["nbp"]["output"] == "solid"
+    assert (solver.PRESETS["gd"]["solid_threshold"], solver.PRESETS["nbp"]["solid_threshold"]) == (0.4, 0.3)
 
 
 def test_solid_output_is_the_solid_of_the_same_run(point_ds):
@@ -310,8 +313,8 @@ def test_solid_output_is_the_solid_of_the_same_run(point_ds):
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
     small = dict(FAST, n_rays=300, bins_per_ping=8, pings_per_iteration=5)
     field = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, **small)
-    out = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, output="solid",
-                   solid_threshold=0.3, solid_close=0, **small)
+    out = gd.solve(point_ds, g, iterations=6, seed=1, progress=False,
+                   **dict(small, output="solid", solid_threshold=0.3, solid_close=0))
     expected = solid.solidify(field.volume, threshold=0.3, min_fraction=0.1, close=0, floor=True)
     assert 0 < expected.sum() < expected.size
     np.testing.assert_array_equal(out.volume, expected.astype(np.complex64))

@@ -14,7 +14,8 @@ from sonarsim.errors import FormatError, InputError
 POINT = np.array(POINT_TARGET)
 TINY = dict(hash_levels=4, hash_base_resolution=4, hash_log2_size=12, mlp_width=16,
             mlp_hidden=1, bins_per_ping=16, n_rays=200, pings_per_iteration=4,
-            pings_per_chunk=2, beamwidth_deg=5.0, init="random", warm_start_iterations=0)
+            pings_per_chunk=2, beamwidth_deg=5.0, init="random", warm_start_iterations=0,
+            output="field")
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +132,7 @@ def test_default_runs_do_not_depend_on_thread_count(point_ds, solver):
     solve = nbp.solve if solver == "nbp" else gradient_descent.solve
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
     kw = dict(iterations=3, seed=5, progress=False)
-    kw.update(TINY if solver == "nbp" else dict(n_rays=300, bins_per_ping=8))
+    kw.update(TINY if solver == "nbp" else dict(n_rays=300, bins_per_ping=8, output="field"))
     threads = dr.thread_count()
     try:
         dr.set_thread_count(2)
@@ -154,7 +155,7 @@ def test_point_target_position_and_residual_below_backprojection(point_ds, grid)
     kw = dict(lambertian=False, occlusion_scale=0.0, bins_per_ping=24, n_rays=600,
               beamwidth_deg=5.0, pings_per_iteration=8, pings_per_chunk=8, hash_levels=6,
               hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3,
-              init="bp", warm_start_iterations=50)
+              init="bp", warm_start_iterations=50, output="field")
     vol = nbp.solve(ds, grid, iterations=60, seed=2, progress=False, **kw)
     peak = np.unravel_index(np.argmax(np.abs(vol.volume)), grid.shape)
     assert np.all(np.abs(grid.position_of(peak) - POINT) <= grid.spacing + 1e-12)
@@ -239,7 +240,8 @@ def test_occupancy_scene_rises_at_the_point_target(point_ds, grid):
     kw = dict(lambertian=False, occlusion_scale=1.0, bins_per_ping=24, n_rays=600,
               beamwidth_deg=5.0, pings_per_iteration=8, pings_per_chunk=8, hash_levels=6,
               hash_base_resolution=4, mlp_width=32, mlp_hidden=1, lr=2e-2, lr_final=2e-3,
-              init="bp", warm_start_iterations=50, occupancy=True, solid_floor=False)
+              init="bp", warm_start_iterations=50, occupancy=True, solid_floor=False,
+              output="field")
     vol = nbp.solve(ds, grid, iterations=60, seed=2, progress=False, **kw)
     o = vol.volume.real
     assert np.all(vol.volume.imag == 0) and o.min() >= 0 and o.max() <= 1

@@ -58,8 +58,8 @@ class SolverSettings(NetworkSettings):
     autocorrelation_taps: int = 0
     scattering: str = "isotropic"
     # the exported volume (both representations): the fitted field, or its solid (recon.solid)
-    output: str = "field"
-    solid_threshold: float = 0.2
+    output: str = "solid"
+    solid_threshold: float = 0.4
     solid_min_fraction: float = 0.1
     solid_close: int = 1
     solid_ground: bool = True
@@ -190,23 +190,29 @@ HELP = {
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
-                        occlusion_scale=500.0, sparsity=0.0, reg_start=500)
+                        occlusion_scale=500.0, sparsity=0.0, reg_start=500,
+                        solid_threshold=0.3)
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
 # matters written out, so a change of a field's default above cannot move them; which scenes
 # and measurements chose each value: docs/reconstruction.md, "Presets"). 'cpu'/'reference':
 # sampling and network sizes; 'sim'/'airsas': the reference's per-scene priors (scripts of
 # the paper's code, §4.8 of the method description).
+# The exported volume of both frozen presets: the solid occupancy (recon.solid), with a
+# threshold per representation (docs/reconstruction.md, "Solid output").
+SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=1, solid_ground=True)
+
 PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
                pings_per_iteration=5, pings_per_chunk=0, bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
-               reg_start=200),
+               reg_start=200, **SOLID, solid_threshold=0.4),
     "nbp": dict(NETWORK_DEFAULTS, iterations=1000, pings_per_iteration=5, pings_per_chunk=5,
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
                 hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
-                hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False),
+                hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
+                **SOLID, solid_threshold=0.3),
     "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
                 hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
