@@ -110,3 +110,26 @@ def pytest_collection_modifyitems(config, items):
         order.setdefault(item.nodeid.split("::")[0], len(order))
     items.sort(key=lambda it: (rank.get(it.nodeid.split("::")[0].rpartition("/")[2],
                                         len(rank)), order[it.nodeid.split("::")[0]]))
+
+
+@pytest.fixture(autouse=True)
+def _sigint_raises_keyboardinterrupt():
+    """Each test runs with Python's own SIGINT handling (KeyboardInterrupt), as a command
+    started from a shell gets it. pytest-xdist workers were seen running tests with SIGINT
+    *ignored* (house, 2026-11-25: ``make test`` with -n 2, three runs out of three, never
+    serially); a child process inherits an ignored SIGINT, so test_reliability's Ctrl-C
+    test could not interrupt its ``recon backproject``. The worker's own setting is put back
+    after the test."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
