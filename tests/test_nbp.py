@@ -43,6 +43,9 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
     vol = Volume.read(out)
     assert vol.method == "nbp" and vol.shape == (9, 9, 9) and np.all(np.isfinite(vol.volume))
     assert vol.params["scene"] == "network" and vol.params["mlp_width"] == 16
+    # the frozen preset exports the solid (0/1) and the command says so
+    assert set(np.unique(vol.volume)) <= {0, 1} and vol.params["output"] == "solid"
+    assert f"exported the solid occupancy ({vol.params['solid_voxels']} voxels" in printed
     assert np.isfinite(vol.params["final_loss"])
     losses = []
     nbp.solve(point_ds, Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9)),

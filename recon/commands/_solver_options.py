@@ -106,10 +106,13 @@ def run(args, network: bool) -> int:
                            checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
                            resume=args.resume, progress=not args.no_progress, **kw)
     what = "neural backprojection" if network else "gradient descent"
+    solid = (f"; exported the solid occupancy ({vol.params['solid_voxels']} voxels, threshold "
+             f"{settings.solid_threshold}; --output field for the field)"
+             if "solid_voxels" in vol.params else "")
     tenths = vol.params["data_loss_by_tenth"]
     trend = (f"; data loss {tenths[0]:.4g} -> {tenths[-1]:.4g} (means of the first and last "
              "tenth of the steps)" if len(tenths) > 1 else "")
     return _common.write_volume(
         vol, args, f"{what}, {settings.iterations} iterations on {grid.shape} voxels, final "
                    f"loss {vol.params['final_loss']:.4g} (data {vol.params['final_data_loss']:.4g})"
-                   + trend)
+                   + trend + solid)
