@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import importlib
 import json
 import math
@@ -49,6 +48,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from sonarsim import identity
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -131,7 +132,7 @@ class Settings:
         key = json.dumps({"angle_step": self.angle_step, "height_step": self.height_step,
                           "paths_per_pose": self.paths_per_pose, "simulation": SIMULATION,
                           "pulses": PULSES}, sort_keys=True, default=str)
-        return hashlib.sha1(key.encode()).hexdigest()[:8]
+        return identity.digest(key, length=8)
 
     def digest(self) -> str:
         """Short digest of these settings and the module-level simulation constants: part of
@@ -139,7 +140,7 @@ class Settings:
         key = json.dumps({"settings": asdict(self), "simulation": SIMULATION, "pulses": PULSES,
                           "threshold": THRESHOLD, "crop_z": CROP_Z, "bounds": GRID_BOUNDS},
                          sort_keys=True, default=str)
-        return hashlib.sha1(key.encode()).hexdigest()[:8]
+        return identity.digest(key, length=8)
 
 
 SIZES = {
@@ -284,7 +285,7 @@ def poses_file(settings: Settings, box, out: Path) -> Path:
     RX, TX boresight, RX boresight; docs/batch.md), written once per pose set and box."""
     poses = cylindrical_poses(settings, box)
     table = np.concatenate([poses.tx, poses.rx, poses.tx_boresight, poses.rx_boresight], axis=1)
-    key = hashlib.sha1(np.ascontiguousarray(table).tobytes()).hexdigest()[:8]
+    key = identity.digest(np.ascontiguousarray(table), length=8)
     path = out / "data" / f"poses_{settings.angle_step}x{settings.height_step}_{key}.npy"
     if not path.is_file():
         from sonarsim.atomic import atomic_path
