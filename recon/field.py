@@ -174,16 +174,25 @@ class NetworkScene:
     def volume(self, params: dict, grid: Grid | None = None, chunk: int = 1 << 17) -> np.ndarray:
         """The complex field on ``grid`` (default: the scene's grid) [nx, ny, nz] complex64,
         in chunks of ``chunk`` points (any resolution, §4.6)."""
+        def field(detached, points):
+            re, im = self.evaluate(detached, points)
+            return np.asarray(re) + 1j * np.asarray(im)
+        return self.on_grid(field, params, grid, np.complex64, chunk)
+
+    def on_grid(self, value, params: dict, grid: Grid | None, dtype, chunk: int = 1 << 17
+                ) -> np.ndarray:
+        """``value(detached params, points Array3f)`` → NumPy [n] evaluated at the voxel centres
+        of ``grid`` (default: the scene's grid), ``chunk`` points at a time, without gradients;
+        returned as [nx, ny, nz] ``dtype``."""
         import drjit as dr
         m = self.m
         grid = self.grid if grid is None else grid
         detached = {k: dr.detach(v) for k, v in params.items()}
-        out = np.empty(grid.size, dtype=np.complex64)
+        out = np.empty(grid.size, dtype=dtype)
         with dr.suspend_grad():
             for s in range(0, grid.size, chunk):
                 pts = grid.points_range(s, s + chunk).T.astype(np.float32)
-                re, im = self.evaluate(detached, m.Array3f(*(m.Float(a) for a in pts)))
-                out[s:s + pts.shape[1]] = np.asarray(re) + 1j * np.asarray(im)
+                out[s:s + pts.shape[1]] = value(detached, m.Array3f(*(m.Float(a) for a in pts)))
         return out.reshape(grid.shape)
 
     def warm_start(self, params: dict, x0: np.ndarray, iterations: int,

@@ -159,19 +159,11 @@ class ShNetworkScene(NetworkScene):
         """The RMS of σ(x, ω) over uniform directions, √(Σ_lm |c_lm|²) (Parseval), on ``grid``
         (default: the scene's) [nx, ny, nz] float32: an alternative export that also sees points
         scattering toward a few directions only (the exported volume is c_00, :meth:`volume`)."""
-        import drjit as dr
-        m = self.m
-        grid = self.grid if grid is None else grid
-        detached = {k: dr.detach(v) for k, v in params.items()}
-        out = np.empty(grid.size, dtype=np.float32)
-        with dr.suspend_grad():
-            for s in range(0, grid.size, chunk):
-                pts = grid.points_range(s, s + chunk).T.astype(np.float32)
-                coeffs = self.coefficients(detached, m.Array3f(*(m.Float(a) for a in pts)))
-                energy = sum(np.asarray(re, np.float64) ** 2 + np.asarray(im, np.float64) ** 2
-                             for re, im in coeffs)
-                out[s:s + pts.shape[1]] = np.sqrt(energy)
-        return out.reshape(grid.shape)
+        def rms(detached, points):
+            energy = sum(np.asarray(re, np.float64) ** 2 + np.asarray(im, np.float64) ** 2
+                         for re, im in self.coefficients(detached, points))
+            return np.sqrt(energy)
+        return self.on_grid(rms, params, grid, np.float32, chunk)
 
 
 class BoundShNetwork(BoundNetwork):
