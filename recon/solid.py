@@ -72,6 +72,20 @@ def fill_enclosed(occupied: np.ndarray, floor: bool) -> np.ndarray:
     return ndimage.binary_fill_holes(padded)[:, :, 1:]
 
 
+def check_parameters(threshold: float, min_fraction: float, close, *,
+                     names=("solid threshold", "solid min_fraction", "solid close"),
+                     max_close: int | None = None) -> None:
+    """The ranges of :func:`solidify`'s parameters (one-line InputError naming ``names``):
+    threshold in [0, 1), min_fraction in [0, 1], close an integer ≥ 0 (≤ ``max_close``)."""
+    if not 0 <= threshold < 1:
+        raise InputError(f"{names[0]}: must be in [0, 1), got {threshold}")
+    if not 0 <= min_fraction <= 1:
+        raise InputError(f"{names[1]}: must be in [0, 1], got {min_fraction}")
+    if int(close) != close or close < 0 or (max_close is not None and close > max_close):
+        bound = ">= 0" if max_close is None else f"in [0, {max_close}]"
+        raise InputError(f"{names[2]}: must be an integer {bound}, got {close}")
+
+
 def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              min_fraction: float = DEFAULTS["min_fraction"], close: int = DEFAULTS["close"],
              floor: bool = DEFAULTS["floor"]) -> np.ndarray:
@@ -82,12 +96,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise InputError(f"solid extraction: expected a 3-D volume, got shape {volume.shape}")
-    if not 0 <= threshold < 1:
-        raise InputError(f"solid threshold: must be in [0, 1), got {threshold}")
-    if not 0 <= min_fraction <= 1:
-        raise InputError(f"solid min_fraction: must be in [0, 1], got {min_fraction}")
-    if int(close) != close or close < 0:
-        raise InputError(f"solid close: must be an integer >= 0, got {close}")
+    check_parameters(threshold, min_fraction, close)
     occupied = occupancy(volume, threshold)
     occupied = drop_small_components(occupied, min_fraction)
     occupied = close_gaps(occupied, int(close))

@@ -86,12 +86,10 @@ class SolverSettings(NetworkSettings):
         for name, options in CHOICES.items():
             if getattr(self, name) not in options:
                 raise InputError(f"{name}: choose one of {', '.join(options)}, got {getattr(self, name)!r}")
-        if not 0 <= self.solid_threshold < 1:
-            raise InputError(f"solid_threshold: must be in [0, 1), got {self.solid_threshold}")
-        if not 0 <= self.solid_min_fraction <= 1:
-            raise InputError(f"solid_min_fraction: must be in [0, 1], got {self.solid_min_fraction}")
-        if not 0 <= int(self.solid_close) <= 10 or int(self.solid_close) != self.solid_close:
-            raise InputError(f"solid_close: must be an integer in [0, 10], got {self.solid_close}")
+        from ..solid import check_parameters
+        check_parameters(self.solid_threshold, self.solid_min_fraction, self.solid_close,
+                         names=("solid_threshold", "solid_min_fraction", "solid_close"),
+                         max_close=10)
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
         from ..scattering import check_settings
