@@ -239,18 +239,27 @@ class BoundNetwork:
         (``dr.backward_to``: the weights' gradients are left untouched, the graph kept for
         the loss), and it is returned detached: a constant in the weight gradient (the
         normal has no second-order term, docs/reconstruction.md)."""
+        (re, im), grad = self.with_magnitude_gradient(
+            points, lambda p: self.scene.evaluate(self.params, p))
+        return re, im, grad
+
+    def with_magnitude_gradient(self, points, evaluate):
+        """(``evaluate(p)``, ∇ₓ Σ|re + i·im|) where ``evaluate(p)`` → (re, im, ...) is called
+        once at the points ``p`` made a grad-enabled leaf: the reverse pass reaches the points
+        alone and the gradient is returned detached (see :meth:`gradient_of_magnitude`)."""
         import drjit as dr
         m = self.scene.m
         p = m.Array3f(dr.detach(points))
         dr.enable_grad(p)
-        re, im = self.scene.evaluate(self.params, p)
+        out = evaluate(p)
+        re, im = out[0], out[1]
         total = dr.sum(dr.sqrt(re * re + im * im + 1e-20))
         dr.set_grad(total, 1.0)
         g = dr.backward_to(p, flags=dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput)
         grad = m.Array3f(dr.detach(g))
         dr.disable_grad(p)
         dr.eval(grad)
-        return re, im, grad
+        return out, grad
 
 
 class OccupancyScene(NetworkScene):

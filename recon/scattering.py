@@ -178,24 +178,18 @@ class BoundShNetwork(BoundNetwork):
         ``directions``, from one network evaluation. The gradient (for the Lambertian normals)
         is taken as in :meth:`recon.field.BoundNetwork.gradient_of_magnitude`: a reverse pass
         to the points alone, detached (a constant in the weight gradient)."""
-        import drjit as dr
-        scene, m = self.scene, self.scene.m
-        if not with_gradient:
-            coeffs = scene.coefficients(self.params, points)
-            re, im = scene.combine(coeffs, directions)
-            return re, im, coeffs[0][0], coeffs[0][1], None
-        p = m.Array3f(dr.detach(points))
-        dr.enable_grad(p)
-        coeffs = scene.coefficients(self.params, p)
-        d_re, d_im = coeffs[0]
-        total = dr.sum(dr.sqrt(d_re * d_re + d_im * d_im + 1e-20))
-        dr.set_grad(total, 1.0)
-        g = dr.backward_to(p, flags=dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput)
-        grad = m.Array3f(dr.detach(g))
+        scene = self.scene
+
+        def density_and_coefficients(p):
+            coeffs = scene.coefficients(self.params, p)
+            return coeffs[0][0], coeffs[0][1], coeffs
+
+        if with_gradient:
+            (_, _, coeffs), grad = self.with_magnitude_gradient(points, density_and_coefficients)
+        else:
+            coeffs, grad = scene.coefficients(self.params, points), None
         re, im = scene.combine(coeffs, directions)
-        dr.disable_grad(p)
-        dr.eval(grad)
-        return re, im, d_re, d_im, grad
+        return re, im, coeffs[0][0], coeffs[0][1], grad
 
 
 def make_scene(grid: Grid, settings):
