@@ -49,7 +49,7 @@ import numpy as np
 
 from sonarsim.errors import InputError
 
-from .field import BoundNetwork, NetworkScene
+from .field import BoundNetwork, NetworkScene, OccupancyScene
 from .grid import Grid
 
 ISOTROPIC = "isotropic"
@@ -204,6 +204,6 @@ def n_outputs(settings) -> int:
     """MLP outputs of the network scene ``settings`` asks for: 3 for the occupancy scene,
     2·(L+1)² for 'sh:L', else 2 (the memory estimate's parameter count)."""
     if getattr(settings, "occupancy", False):
-        return 3
+        return OccupancyScene.n_outputs(False)
     degree = parse_scattering(getattr(settings, "scattering", ISOTROPIC))
-    return 2 if degree is None else 2 * n_coefficients(degree)
+    return NetworkScene.n_outputs(False) if degree is None else 2 * n_coefficients(degree)
