@@ -32,7 +32,6 @@ An empty reconstruction (nothing above the threshold) gives IoU 0 and ``None``
 """
 from __future__ import annotations
 
-import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from sonarsim import identity
 from sonarsim.errors import InputError
 
 from . import export, groundtruth
@@ -66,28 +66,13 @@ _GT_CACHE: "OrderedDict[tuple, object]" = OrderedDict()
 GT_CACHE_SIZE = 16      # entries (a GT's lattice mask or sample set: a few MB each)
 
 
-def mesh_fingerprint(mesh: trimesh.Trimesh) -> str:
-    """Digest of a mesh's vertices and faces (equal meshes, equal digests)."""
-    h = hashlib.sha1(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    return h.hexdigest()
-
-
-def _array_key(value) -> object:
-    if value is None:
-        return None
-    if isinstance(value, (list, tuple)):
-        return tuple(_array_key(v) for v in value)
-    a = np.ascontiguousarray(value, dtype=np.float64)
-    return (a.shape, hashlib.sha1(a.tobytes()).hexdigest())
-
-
 def cached_gt(kind: str, mesh: trimesh.Trimesh, args: tuple, compute):
     """``compute()`` for a GT mesh, remembered per (kind, mesh, args) in this process: the
     cells of one shape (every method, both protocols, every threshold) share the GT's
     containment lattice and sample sets instead of recomputing them (seconds each). The
-    arrays returned are read-only. ``args`` may hold arrays (keyed by their content)."""
-    key = (kind, mesh_fingerprint(mesh), _array_key(args))
+    arrays returned are read-only. The mesh and ``args`` (which may hold arrays) are keyed by
+    their content (:func:`sonarsim.identity.digest`)."""
+    key = (kind, identity.digest(mesh, args))
     if key in _GT_CACHE:
         _GT_CACHE.move_to_end(key)
         return _GT_CACHE[key]
@@ -181,6 +166,13 @@ def _as_set(points, normals=None) -> PointSet:
     return points if isinstance(points, PointSet) else PointSet(points, normals)
 
 
+def _chamfer_of(dab: np.ndarray, dba: np.ndarray) -> dict:
+    """:func:`chamfer`'s values from the nearest-neighbour distances a→b and b→a (m)."""
+    return {"sq": float(np.mean(dab ** 2) + np.mean(dba ** 2)),
+            "m": float(0.5 * (dab.mean() + dba.mean())),
+            "a_to_b_m": float(dab.mean()), "b_to_a_m": float(dba.mean())}
+
+
 def surface_agreement(a, b, na=None, nb=None) -> tuple[dict, float | None, float | None]:
     """(:func:`chamfer` of ``a`` and ``b``, normal consistency, normal angular error in
     degrees) from one nearest-neighbour query each way: point sets [N, 3] / [M, 3] or
@@ -191,9 +183,7 @@ def surface_agreement(a, b, na=None, nb=None) -> tuple[dict, float | None, float
         return {"sq": None, "m": None, "a_to_b_m": None, "b_to_a_m": None}, None, None
     dab, ia = _nearest(b.tree, a.points)
     dba, ib = _nearest(a.tree, b.points)
-    cm = {"sq": float(np.mean(dab ** 2) + np.mean(dba ** 2)),
-          "m": float(0.5 * (dab.mean() + dba.mean())),
-          "a_to_b_m": float(dab.mean()), "b_to_a_m": float(dba.mean())}
+    cm = _chamfer_of(dab, dba)
     if a.normals is None or b.normals is None:
         return cm, None, None
     ab = np.clip(np.abs(np.sum(a.normals * b.normals[ia], axis=1)), 0.0, 1.0)
@@ -375,10 +365,7 @@ class Evaluator:
         if missing.any():
             dab[missing], _ = cKDTree(sweep["pts"][keep]).query(self.gt_surface[missing],
                                                               workers=-1)
-        dba = sweep["to_gt"][keep]
-        return {"sq": float(np.mean(dab ** 2) + np.mean(dba ** 2)),
-                "m": float(0.5 * (dab.mean() + dba.mean())),
-                "a_to_b_m": float(dab.mean()), "b_to_a_m": float(dba.mean())}
+        return _chamfer_of(dab, sweep["to_gt"][keep])
 
 
 # metric -> True when larger is better
