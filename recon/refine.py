@@ -160,13 +160,19 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
     return np.asarray(v, np.float64), np.asarray(f, np.int64)
 
 
+def _triangles_and_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(corner positions [F, 3, 3], areas [F]) of a mesh's triangles (m, m²)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    return tri, 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
 def patch_labels(vertices: np.ndarray, faces: np.ndarray, patch_size: float, seed: int = 0,
                  max_patches: int = 400) -> np.ndarray:
     """Patch index per face [F]: k-means (scipy) of the face centroids into about
     area / patch_size² patches (at most ``max_patches``), numbered 0..K−1 without gaps."""
     from scipy.cluster.vq import kmeans2
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    tri, area = _triangles_and_areas(vertices, faces)
+    area = area.sum()
     k = int(np.clip(round(area / patch_size ** 2), 1, min(max_patches, len(faces))))
     if k == 1:
         return np.zeros(len(faces), np.int64)
@@ -178,8 +184,7 @@ def supported_faces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                     albedo: np.ndarray, keep: float) -> np.ndarray:
     """Mask [F] of the faces whose patch albedo is ≥ ``keep`` × the area-weighted median of
     the patch albedos (the support stage's verdict)."""
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    _, area = _triangles_and_areas(vertices, faces)
     patch_area = np.bincount(labels, weights=area, minlength=len(albedo))
     order = np.argsort(albedo)
     cum = np.cumsum(patch_area[order])
@@ -189,8 +194,7 @@ def supported_faces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray,
 
 def _patch_centres(vertices, faces, labels, n_patches) -> np.ndarray:
     """Area-weighted centre [K, 3] (m) of each patch."""
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    tri, area = _triangles_and_areas(vertices, faces)
     w = np.bincount(labels, weights=area, minlength=n_patches)
     return np.stack([np.bincount(labels, weights=area * tri.mean(axis=1)[:, a], minlength=n_patches)
                      for a in range(3)], axis=1) / np.maximum(w, 1e-30)[:, None]
@@ -386,6 +390,21 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                        desc="refine")
     t0 = time.perf_counter()
     support = None
+
+    def misfit_and_backward(model, vertices_ad, albedo_ad, stage):
+        """One step's misfit (loss, alpha) of the next batch (a new batch order per pass over
+        the batches) and its gradient propagated to ``vertices_ad`` and ``albedo_ad``."""
+        nonlocal order
+        if step % n_batches == 0:
+            order = rng.permutation(n_batches)
+        b = int(order[step % n_batches])
+        hist = model.render(vertices_ad, albedo_ad, batches[b], settings.seed * 100_003 + 2 * step)
+        h = hist.numpy().astype(np.float64).sum(axis=1)
+        loss, alpha, grad = objective(stage, h, b, batches[b])
+        g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
+        dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+        return loss, alpha
+
     with tempfile.TemporaryDirectory(prefix="refine-") as workdir:
         try:
             if settings.support_steps:
@@ -396,15 +415,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                 opt_rho["log_albedo"] = mi.Float(np.zeros(model.n_patches, np.float32))
                 v_fixed = model.vertices[0]
                 for j in range(settings.support_steps):
-                    if step % n_batches == 0:
-                        order = rng.permutation(n_batches)
-                    b = int(order[step % n_batches])
-                    hist = model.render(v_fixed, dr.exp(opt_rho["log_albedo"]), batches[b],
-                                        settings.seed * 100_003 + 2 * step)
-                    h = hist.numpy().astype(np.float64).sum(axis=1)
-                    loss, alpha, grad = objective("envelope", h, b, batches[b])
-                    g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
-                    dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+                    loss, alpha = misfit_and_backward(model, v_fixed, dr.exp(opt_rho["log_albedo"]),
+                                                      "envelope")
                     opt_rho.step()
                     history.append({"step": step, "stage": "support", "loss": loss, "alpha": alpha,
                                     "albedo": None, "seconds": time.perf_counter() - t0})
@@ -447,16 +459,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     for j in range(seg):
                         frac = (done + j) / max(1, n_steps - 1)
                         opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * frac))))
-                        if step % n_batches == 0:
-                            order = rng.permutation(n_batches)
-                        b = int(order[step % n_batches])
-                        rho = dr.exp(opt_rho["log_albedo"])
-                        hist = model.render(ls.from_differential(opt["u"]), rho, batches[b],
-                                            settings.seed * 100_003 + 2 * step)
-                        h = hist.numpy().astype(np.float64).sum(axis=1)
-                        loss, alpha, grad = objective(stage, h, b, batches[b])
-                        g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
-                        dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+                        loss, alpha = misfit_and_backward(model, ls.from_differential(opt["u"]),
+                                                          dr.exp(opt_rho["log_albedo"]), stage)
                         opt.step()
                         if fit_albedo:
                             opt_rho.step()
