@@ -73,9 +73,7 @@ def check_options(grid: Grid, dataset=None, *, reference_point=None, band_db: fl
     (InputError, one line): the option ranges and the grid's memory."""
     from .checks import check_grid_memory
     _validate(grid, band_db, taper, eps, reference_point)
-    if max(_patch_counts(patches)) > 1 and reference_point is not None:
-        raise InputError("patches: each block has its own reference point; "
-                         "give either patches or reference_point")
+    _patch_counts(patches, reference_point)
     check_grid_memory(grid, BYTES_PER_VOXEL, what="polar formatting")
 
 
@@ -255,12 +253,17 @@ def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     return image.astype(np.complex64), info
 
 
-def _patch_counts(patches) -> tuple[int, int, int]:
+def _patch_counts(patches, reference_point=None) -> tuple[int, int, int]:
+    """Blocks per axis of ``patches`` (one-line InputError for a bad value, or for blocks
+    together with a ``reference_point``: each block has its own)."""
     counts = (patches,) * 3 if np.ndim(patches) == 0 else tuple(patches)
     if len(counts) != 3 or not all(isinstance(c, (int, np.integer)) and not isinstance(c, bool)
                                    and 1 <= c <= 16 for c in counts):
         raise InputError(f"patches: must be an integer in [1, 16] (blocks per axis) or three "
                          f"of them, got {patches!r}")
+    if max(counts) > 1 and reference_point is not None:
+        raise InputError("patches: each block has its own reference point; "
+                         "give either patches or reference_point")
     return tuple(int(c) for c in counts)
 
 
@@ -300,10 +303,7 @@ def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     Returns a :class:`~sonarsim.dataset.Volume` (complex64 [nx, ny, nz], method 'pfa').
     """
     from sonarsim.dataset import Volume
-    counts = _patch_counts(patches)
-    if max(counts) > 1 and reference_point is not None:
-        raise InputError("patches: each block has its own reference point; "
-                         "give either patches or reference_point")
+    counts = _patch_counts(patches, reference_point)
     if max(counts) == 1:
         image, info = pfa(dataset, grid, reference_point=reference_point, band_db=band_db,
                           taper=taper, eps=eps, per_ping_sound_speed=per_ping_sound_speed,
