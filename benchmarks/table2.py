@@ -369,36 +369,14 @@ def manifest(cells: list[Cell], settings: Settings, out: Path, source: str = "au
     return {"job": list(jobs.values())}, where
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"TOML has no {value}")
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)           # a TOML basic string (JSON escapes are TOML's)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(f"no TOML for {value!r}")
-
-
 def write_manifest(doc: dict, path: Path) -> None:
     """``doc`` (jobs with ``reconstruct`` lists) as a TOML manifest (``sonarsim batch``)."""
-    lines = ["# benchmarks/table2.py: Table 2 as a sonarsim batch (docs/batch.md)", ""]
-    for job in doc["job"]:
-        lines.append("[[job]]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in job.items() if k != "reconstruct"]
-        for step in job.get("reconstruct", []):
-            lines += ["", "[[job.reconstruct]]"]
-            lines += [f"{k} = {_toml_value(v)}" for k, v in step.items()]
-        lines.append("")
+    import tomli_w
     from sonarsim.atomic import atomic_path
+    text = "# benchmarks/table2.py: Table 2 as a sonarsim batch (docs/batch.md)\n\n" + tomli_w.dumps(doc)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
+        Path(tmp).write_text(text)
 
 
 def run_batch(cells: list[Cell], settings: Settings, out: Path, source: str = "auto",
