@@ -133,3 +133,13 @@ def _sigint_raises_keyboardinterrupt():
     finally:
         if ignored:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+#: A tiny `recon nbp` run (after the dataset): a 9³ grid over point_target_grid's box, two
+#: steps of a 4-level, 16-wide network from a random start (the CLI tests of test_nbp and
+#: test_scattering).
+TINY_NBP_OPTIONS = ("--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
+                    "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
+                    "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1",
+                    "--n-rays", "200", "--bins-per-ping", "16", "--pings-per-iteration", "4",
+                    "--beamwidth-deg", "5", "--seed", "3", "--init", "random")

@@ -2,7 +2,7 @@
 checkpoint/resume, a point target, and one forward model for voxels and network."""
 import numpy as np
 import pytest
-from conftest import POINT_TARGET
+from conftest import POINT_TARGET, TINY_NBP_OPTIONS
 
 from recon import backprojection as bp
 from recon import forward as F
@@ -33,11 +33,7 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
     src = tmp_path / "d.h5"
     point_ds.write(src)
     out = tmp_path / "v.h5"
-    rc = main(["nbp", str(src), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
-               "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
-               "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--n-rays", "200",
-               "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth-deg", "5",
-               "--seed", "3", "--init", "random", "--out", str(out), "--no-progress"])
+    rc = main(["nbp", str(src), *TINY_NBP_OPTIONS, "--out", str(out), "--no-progress"])
     printed = capsys.readouterr().out
     assert rc == 0 and "neural backprojection" in printed
     vol = Volume.read(out)

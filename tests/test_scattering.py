@@ -10,6 +10,7 @@ from recon.adam import Adam
 from recon.field import NetworkScene, NetworkSettings
 from recon.grid import Grid
 from sonarsim.errors import InputError
+from conftest import TINY_NBP_OPTIONS
 
 SMALL_NET = dict(hash_levels=4, hash_features=2, hash_log2_size=12, hash_base_resolution=4,
                  hash_level_scale=2.0, mlp_width=32, mlp_hidden=1)
@@ -126,17 +127,23 @@ def _loss_and_gradients(scene, p, samples, t):
             {k: np.asarray(dr.grad(v)) for k, v in params.items()})
 
 
+def _random_sh2_scene(grid, settings, seed):
+    """An sh:2 scene with a random hash table (uniform in ±1, far from the ±1e-4 start, so
+    every coefficient is non-zero) and its parameters as Dr.Jit Floats."""
+    scene = S.ShNetworkScene(grid, settings, 2)
+    rng = np.random.default_rng(seed)
+    p = scene.initial(rng)
+    p["grid"] = rng.uniform(-1, 1, p["grid"].shape).astype(np.float32)
+    return scene, {k: scene.m.Float(v) for k, v in p.items()}
+
+
 def test_directional_render_equals_a_straightforward_sum(grid):
     """render of an sh:2 field = Σ_j Σ_lm c_lm(x_j) Ỹ_lm(ω_j) over the rays, computed in NumPy
     from the coefficients at the sample points, SciPy's harmonics and look directions from
     the TX/RX positions (no Lambertian factor, no occlusion)."""
     settings = NetworkSettings(**SMALL_NET)
-    scene = S.ShNetworkScene(grid, settings, 2)
-    rng = np.random.default_rng(5)
-    p = scene.initial(rng)
-    p["grid"] = rng.uniform(-1, 1, p["grid"].shape).astype(np.float32)
+    scene, params = _random_sh2_scene(grid, settings, seed=5)
     m = scene.m
-    params = {k: m.Float(v) for k, v in p.items()}
     geo = _geometry()
     J = 60
     samples = F.EllipsoidSamples(geo, F.cone_directions(J, 20.0))
@@ -233,12 +240,8 @@ def test_rms_volume_is_the_rms_over_directions(grid):
     """rms_volume = √(mean over the sphere of |σ(x, ω)|²), the mean by a product quadrature
     exact for |σ|² of an sh:2 field (Gauss–Legendre in cos θ × uniform φ)."""
     settings = NetworkSettings(**SMALL_NET)
-    scene = S.ShNetworkScene(grid, settings, 2)
-    rng = np.random.default_rng(6)
-    p = scene.initial(rng)
-    p["grid"] = rng.uniform(-1, 1, p["grid"].shape).astype(np.float32)
+    scene, params = _random_sh2_scene(grid, settings, seed=6)
     m = scene.m
-    params = {k: m.Float(v) for k, v in p.items()}
     small = Grid(grid.bounds, (4, 4, 3))
     got = scene.rms_volume(params, small).ravel()
     pts = small.points().astype(np.float32)              # [N, 3], the volume's order
@@ -287,11 +290,7 @@ def test_cli_sh_run_exports_c00(point_target_scan, tmp_path, capsys):
     src = tmp_path / "d.h5"
     point_target_scan.write(src)
     out = tmp_path / "v.h5"
-    rc = main(["nbp", str(src), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
-               "--shape", "9", "9", "9", "--iterations", "2", "--hash-levels", "4",
-               "--hash-log2-size", "12", "--mlp-width", "16", "--mlp-hidden", "1", "--n-rays", "200",
-               "--bins-per-ping", "16", "--pings-per-iteration", "4", "--beamwidth-deg", "5",
-               "--seed", "3", "--init", "random", "--scattering", "sh:1", "--out", str(out),
+    rc = main(["nbp", str(src), *TINY_NBP_OPTIONS, "--scattering", "sh:1", "--out", str(out),
                "--no-progress"])
     assert rc == 0
     from sonarsim.dataset import Volume
