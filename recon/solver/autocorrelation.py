@@ -37,14 +37,34 @@ def expand_bins(bins: np.ndarray, taps: int, n_t: int):
     return render, pos
 
 
+def aligned_upload(kind, values: np.ndarray, alignment: int = 64):
+    """``values`` (any shape, flattened) as the Dr.Jit array type ``kind``, read from a host
+    buffer whose start is aligned to ``alignment`` bytes.
+
+    Dr.Jit's LLVM backend maps a NumPy buffer without copying it and writes the buffer's
+    alignment into the kernel (vector loads ``align 32`` when the address allows it, ``align 1``
+    otherwise), so the kernel's hash depends on where the allocator happened to put the array.
+    A kernel that reads n freshly allocated NumPy arrays has up to 2ⁿ variants, and one that is
+    rebuilt every iteration from new arrays compiles again nearly every time. An aligned buffer
+    gives one variant."""
+    flat = np.ascontiguousarray(values).ravel()
+    raw = np.empty(flat.nbytes + alignment, dtype=np.uint8)
+    start = -raw.ctypes.data % alignment
+    host = raw[start:start + flat.nbytes].view(flat.dtype)
+    host[:] = flat
+    return kind(host)
+
+
 def convolve_rendered(m, y_re, y_im, pos: np.ndarray, acf: np.ndarray):
-    """Σ_m acf[m]·ŷ(k − m) for every drawn bin (Float re, im [P·K]) from the rendered ŷ."""
+    """Σ_m acf[m]·ŷ(k − m) for every drawn bin (Float re, im [P·K]) from the rendered ŷ.
+    The positions of each lag are uploaded aligned (:func:`aligned_upload`), so every iteration
+    reuses one compiled kernel (forward and backward) instead of compiling new ones."""
     import drjit as dr
     P, K, L = pos.shape
     out_re = dr.zeros(m.Float, P * K)
     out_im = dr.zeros(m.Float, P * K)
     for j in range(L):
-        idx = m.UInt32(pos[:, :, j].ravel().astype(np.uint32))
+        idx = aligned_upload(m.UInt32, pos[:, :, j].astype(np.uint32))
         a_re = dr.gather(m.Float, y_re, idx)
         a_im = dr.gather(m.Float, y_im, idx)
         cr, ci = float(acf[j].real), float(acf[j].imag)
