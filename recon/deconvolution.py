@@ -279,29 +279,31 @@ class INRSettings(NetworkSettings):
 
     def validate(self) -> None:
         """Every field in its range (InputError, one line naming the setting), before any
-        work: the network's ranges are :meth:`NetworkSettings.validate_network`'s (a level
-        count whose finest resolution overflows is refused there rather than failing later
-        as a NaN loss); a width or batch that cannot fit is refused by the memory check."""
-        for name, lo, hi in (("pings_per_inr", 1, 1 << 20), ("iterations", 1, 1_000_000),
-                             ("hash_levels", 1, 64), ("hash_features", 1, 8),
-                             ("hash_log2_size", 1, 26), ("hash_base_resolution", 1, 1 << 20),
-                             ("mlp_width", 1, 1024), ("mlp_hidden", 0, 16),
-                             ("seed", 0, 2 ** 32 - 1)):
+        work. The fit's own settings are checked here; the network's ranges only in
+        :meth:`NetworkSettings.validate_network` (the one place recon nbp's field uses too: a
+        level count whose finest resolution overflows is refused there rather than failing
+        later as a NaN loss); a width or batch that cannot fit is refused by the memory
+        check. Every integer setting must be an integer (a manifest's 2.5 is not truncated)."""
+        for name in _INTEGER_SETTINGS:
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise InputError(f"inr {name}: must be an integer, got {v!r}")
+        for name, lo, hi in _FIT_RANGES:
+            v = getattr(self, name)
+            if not lo <= v <= hi:
                 raise InputError(f"inr {name}: must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, lo, hi in (("lr", 0.0, 1.0), ("lr_final", 0.0, 1.0)):
+        for name in ("lr", "lr_final"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
-                raise InputError(f"inr {name}: must be in ({lo:g}, {hi:g}], got {v!r}")
+            if not (_is_number(v) and math.isfinite(v) and 0.0 < v <= 1.0):
+                raise InputError(f"inr {name}: must be in (0, 1], got {v!r}")
         for name in ("sparsity", "phase"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            if not (_is_number(v) and math.isfinite(v) and v >= 0):
                 raise InputError(f"inr {name}: must be >= 0, got {v!r}")
-        if not (isinstance(self.band_db, (int, float)) and self.band_db > 0):
+        if not (_is_number(self.band_db) and self.band_db > 0):
             raise InputError(f"inr band_db: must be positive (inf = full band), "
                              f"got {self.band_db!r}")
-        if not isinstance(self.hash_level_scale, (int, float)):
+        if not _is_number(self.hash_level_scale):
             raise InputError(f"inr hash_level_scale: must be a number, got "
                              f"{self.hash_level_scale!r}")
         try:
@@ -337,6 +339,18 @@ class INRSettings(NetworkSettings):
         scale = activations(self) / activations(INRSettings())
         return (INR_CPU_S_PER_SAMPLE_ITERATION * scale * int(n_pings) * int(n_samples)
                 * self.iterations)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+
+# The INR's integer settings (the network's and the fit's), and the ranges of the fit's own
+# ones; the network's ranges are NetworkSettings.validate_network's.
+_INTEGER_SETTINGS = ("pings_per_inr", "iterations", "seed", "hash_levels", "hash_features",
+                     "hash_log2_size", "hash_base_resolution", "mlp_width", "mlp_hidden")
+_FIT_RANGES = (("pings_per_inr", 1, 1 << 20), ("iterations", 1, 1_000_000),
+               ("seed", 0, 2 ** 32 - 1))
 
 
 # CPU seconds per sample and Adam iteration of the default network, measured on the

@@ -285,6 +285,20 @@ def test_inr_network_settings_are_the_fields_network_settings():
         dc.INRSettings(mlp_width=4096).validate()
 
 
+def test_inr_network_ranges_live_in_network_settings_only(monkeypatch):
+    """The network's ranges are checked in one place, NetworkSettings.validate_network: moving
+    its width bound moves the INR's; the INR adds only that integers are integers."""
+    import recon.field
+    monkeypatch.setattr(recon.field, "MAX_MLP_WIDTH", 2048)
+    dc.INRSettings(mlp_width=1500).validate()
+    monkeypatch.setattr(recon.field, "MAX_MLP_WIDTH", 16)
+    with pytest.raises(InputError, match="inr mlp_width: must be <= 16"):
+        dc.INRSettings(mlp_width=32).validate()
+    for name, bad in (("hash_levels", 2.5), ("mlp_width", "8"), ("iterations", True)):
+        with pytest.raises(InputError, match=f"inr {name}: must be an integer"):
+            dc.INRSettings(**{name: bad}).validate()
+
+
 @pytest.mark.parametrize("old, new", [("--n-levels", "--hash-levels"), ("--width", "--mlp-width"),
                                       ("--hidden-layers", "--mlp-hidden"),
                                       ("--per-level-scale", "--hash-level-scale"),
