@@ -18,7 +18,9 @@ records make it resumable: finished datasets, volumes and metrics are kept (job 
 are stored in the files), an interrupted run goes on where it stopped. Datasets are named by
 what the simulation depends on only (a solver setting never re-simulates); a step's label
 carries a digest of its table and of the solver's effective settings (presets in code
-included). Outputs in ``--out``:
+included). ``--data DIR`` adopts scans simulated before (e.g. outside the batch) that are a
+job's simulation by its parameters (poses, pulse, scene, recorded settings:
+:func:`simulation_mismatches`) instead of simulating them again. Outputs in ``--out``:
 
 * ``table2.md``  -- the table in the reference's layout (Chamfer, IoU, LPIPS, PSNR per method,
                     mean over shapes) for each protocol with the published row beside ours;
@@ -310,7 +312,7 @@ def step_label(method: Method, step: dict) -> str:
     from sonarsim.identity import digest
     mod = importlib.import_module(method.module)
     options = {k: v for k, v in step.items() if k not in batch_step.STEP_KEYS}
-    effective = batch_step._option_defaults(mod, options)[0]
+    effective = batch_step.option_defaults(mod, options)[0]
     return f"{method.key}-{digest(step, {**effective, **options}, length=8)}"
 
 
@@ -379,8 +381,137 @@ def write_manifest(doc: dict, path: Path) -> None:
         Path(tmp).write_text(text)
 
 
+# ------------------------------------------------------- adopting datasets simulated before
+
+def simulation_mismatches(path: Path, job) -> list[str]:
+    """What differs between the dataset ``path`` and what batch ``job`` would simulate (empty:
+    the same simulation). Compared: the poses (TX, RX and both boresights of every ping), the
+    pulse (samples, rate, spec), the scene (box, ground, every object's mesh, albedo and
+    normals, from the dataset's recorded ``scene_source``) and every simulation setting the
+    dataset records (SNR, seed, sound speed, bounces, oversampling, beams, amplitude model,
+    Monte-Carlo target or explicit sampling, bounce-1 estimator, speckle seed, transients).
+    The simulator's code version is not compared: an adopted scan is the same simulation by
+    its parameters, made by the sonarsim of its ``generator`` meta."""
+    from sonarsim.batch.plan import build_simulation
+    from sonarsim.dataset import KIND_DATASET, SonarDataset, inspect
+    from sonarsim.errors import SonarsimError
+    from sonarsim.render import DEFAULT_BEAMS
+    from sonarsim.scene import load_scene
+    try:
+        with inspect(path) as (kind, f):
+            if kind != KIND_DATASET or not f.get("complete", False):
+                return ["not a complete sonar dataset"]
+        data = SonarDataset.read(path, transients=False)
+    except (SonarsimError, OSError) as exc:
+        return [f"unreadable ({exc})"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        spec, poses, s, _ = build_simulation(job.params)
+    meta = data.meta or {}
+    bad: list[str] = []
+
+    def same(name, ours, theirs, tol=0.0):
+        a, b = np.asarray(ours), np.asarray(theirs)
+        ok = a.shape == b.shape and (np.array_equal(a, b) if a.dtype.kind in "OUSb" or tol == 0
+                                     else np.allclose(a, b, rtol=0, atol=tol))
+        if not ok:
+            bad.append(name)
+
+    if data.n_pings != len(poses.tx):
+        return [f"{data.n_pings} pings, the job has {len(poses.tx)}"]
+    same("tx", poses.tx, data.tx, 1e-9)
+    same("rx", poses.rx, data.rx, 1e-9)
+    same("tx boresight", poses.tx_boresight, data.boresight, 1e-9)
+    same("rx boresight", poses.rx_boresight, data.receiver_boresight, 1e-9)
+    same("pulse", s.pulse.samples, data.pulse, 1e-12)
+    same("fs", s.pulse.fs, data.fs)
+    same("pulse spec", str(s.pulse.spec), str(meta.get("pulse_spec")))
+    same("snr_db", float(s.snr_db), float(data.snr_db))
+    same("seed", int(s.seed), int(data.seed))
+    same("sound speed", float(s.sound_speed), float(data.sound_speed))
+    expected = {"bounces": int(s.bounces), "bounce_set": [b + 1 for b in s.bounce_index],
+                "oversample": int(s.oversample), "amplitude_model": s.amplitude,
+                "beams": {**DEFAULT_BEAMS, **dict(s.beams or {})},
+                "mc_snr_target_db": None if s.target_mc_snr_db is None else float(s.target_mc_snr_db),
+                "bounce1_estimator": s.bounce1,
+                "speckle_seed": int(s.speckle_seed) if s.amplitude == "coherent" else None}
+    if s.paths_per_pose is not None:
+        expected["paths_per_pose"] = int(s.paths_per_pose)
+    if s.surface_spacing is not None:
+        expected["surface_spacing"] = float(s.surface_spacing)
+    for key, value in expected.items():
+        if meta.get(key) != value:
+            bad.append(f"{key} {meta.get(key)!r} (the job: {value!r})")
+    if bool(s.keep_transients) != bool(data.transients is not None):
+        bad.append("transients")
+    source = meta.get("scene_source")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            theirs = load_scene(source)
+    except (SonarsimError, OSError, TypeError) as exc:
+        return bad + [f"scene: its source {source!r} cannot be loaded ({exc})"]
+    same("scene box", [spec.box.lo, spec.box.hi], [theirs.box.lo, theirs.box.hi], 1e-12)
+    same("ground", repr(spec.ground), repr(theirs.ground))
+    if len(spec.objects) != len(theirs.objects):
+        bad.append("scene objects")
+    else:
+        for i, (a, b) in enumerate(zip(spec.objects, theirs.objects)):
+            same(f"object[{i}] vertices", a.mesh.vertices, b.mesh.vertices, 1e-12)
+            same(f"object[{i}] faces", a.mesh.faces, b.mesh.faces)
+            same(f"object[{i}] albedo", repr(a.albedo), repr(b.albedo))
+            same(f"object[{i}] normals", repr(a.normals), repr(b.normals))
+    return bad
+
+
+def adopt_datasets(plan, data_dir: Path, log: Callable[[str], None] = print) -> dict[str, str]:
+    """Give every job of ``plan`` without its dataset yet a scan from ``data_dir`` that is the
+    same simulation (:func:`simulation_mismatches` empty): the scan is copied to the job's
+    output with the batch's job metadata added, so the batch skips its simulation. The files
+    in ``data_dir`` are only read. Returns {job name: adopted path}."""
+    from sonarsim.batch.identity import job_meta
+    from sonarsim.batch.records import dataset_record
+    from sonarsim.dataset import SonarDataset
+    if not data_dir.is_dir():
+        raise SystemExit(f"--data {data_dir}: not a directory")
+    candidates = sorted(p for p in data_dir.glob("*.h5") if "_pd-" not in p.name
+                        and ".pd-" not in p.name)
+    adopted = {}
+    for job in plan.jobs:
+        if dataset_record(job.output, job.job_id) is not None:
+            continue
+        n_pings = len(np.load(job.params["poses"], mmap_mode="r"))
+        for path in candidates:
+            try:
+                from sonarsim.dataset import inspect
+                with inspect(path) as (_, f):
+                    if int(f["tx"].shape[0]) != n_pings:
+                        continue
+            except Exception:           # noqa: BLE001 -- not a dataset: not a candidate
+                continue
+            problems = simulation_mismatches(path, job)
+            if problems:
+                log(f"--data: {path.name} is not job {job.name}'s simulation: "
+                    + "; ".join(problems[:4]))
+                continue
+            data = SonarDataset.read(path)
+            data.meta = {**(data.meta or {}), **job_meta(job),
+                         "adopted_from": str(path.resolve())}
+            Path(job.output).parent.mkdir(parents=True, exist_ok=True)
+            data.write(job.output)
+            if dataset_record(job.output, job.job_id) is None:
+                raise SystemExit(f"--data: {job.output}: the adopted copy is not job "
+                                 f"{job.name}'s dataset")
+            log(f"--data: job {job.name}: adopted {path} (the same simulation: poses, pulse, "
+                "scene and settings compared)")
+            adopted[job.name] = str(path)
+            break
+    return adopted
+
+
 def run_batch(cells: list[Cell], settings: Settings, out: Path, source: str = "auto",
-              scheduler: str = "sequential", workers: int | None = None) -> list[dict]:
+              scheduler: str = "sequential", workers: int | None = None,
+              data_dir: Path | None = None) -> list[dict]:
     """Run the table as a ``sonarsim batch`` in ``out/batch`` (simulate, deconvolve,
     reconstruct, evaluate: the batch's resume, locks and records) and return one result
     dict per cell (:func:`cell_result`). ``scheduler``: 'sequential' (this process, the
@@ -391,6 +522,8 @@ def run_batch(cells: list[Cell], settings: Settings, out: Path, source: str = "a
     path = out / "batch" / "table2.toml"
     write_manifest(doc, path)
     plan = plan_batch(path, out / "batch", log=lambda m: print(m, flush=True))
+    if data_dir is not None:
+        adopt_datasets(plan, data_dir, log=lambda m: print(m, flush=True))
     with Engine(None if scheduler == "local" else scheduler, workers=workers) as engine:
         result = batch_run(plan, engine, progress=False, log=lambda m: print(m, flush=True))
     if result.failed:
@@ -631,6 +764,10 @@ def parse_args(argv):
                     help="metrics at τ only (no best-τ sweep of the exact protocol)")
     ap.add_argument("--deconvolution", choices=("wiener", "inr"),
                     help="pulse deconvolution of the GD and NBP cells' data (default wiener)")
+    ap.add_argument("--data", type=Path, default=None, metavar="DIR",
+                    help="adopt scans from DIR (read only) that are the same simulation as a "
+                         "job's (poses, pulse, scene and settings compared) instead of "
+                         "simulating them")
     ap.add_argument("--scheduler", default="sequential", metavar="ADDRESS",
                     help="where the batch's jobs run: 'sequential' (this process, the default), "
                          "'local' (a Dask LocalCluster, see --workers) or a Dask scheduler "
@@ -697,7 +834,8 @@ def main(argv: list[str] | None = None) -> int:
                f"{settings.deconvolution} deconvolution for GD and NBP, "
                f"{settings.samples} surface and {settings.volume_samples} volume samples")
     print(summary, flush=True)
-    results = run_batch(cells, settings, out, args.scene_source, args.scheduler, args.workers)
+    results = run_batch(cells, settings, out, args.scene_source, args.scheduler, args.workers,
+                        args.data)
     for r in results:
         notes += r.get("notes", [])
         e, x = r["reference"], r["exact"]

@@ -98,7 +98,7 @@ def _type_error(key: str, value, default) -> str | None:
     return None if ok else f"{key} must be {want}, got {value!r}"
 
 
-def _option_defaults(mod, options: dict) -> tuple[dict, bool]:
+def option_defaults(mod, options: dict) -> tuple[dict, bool]:
     """({option: default} a solver module accepts, whether it takes any keyword).
 
     The keywords of ``solve`` and, for a solver with a settings dataclass
@@ -126,7 +126,7 @@ def check_options(mod, module: str, options: dict, grid, where: str) -> None:
     """The solver options of a step, checked as the command line checks them: known names,
     types, the settings' ranges (``settings_for(...).validate()``) and the module's own
     ``check_options(grid, **options)`` if it has one (ranges and memory estimates)."""
-    defaults, takes_any = _option_defaults(mod, options)
+    defaults, takes_any = option_defaults(mod, options)
     unknown = [k for k in options if k not in defaults or k in NOT_OPTIONS]
     if unknown and (not takes_any or any(k in NOT_OPTIONS for k in unknown)):
         raise InputError(f"{where}: {module}.solve takes no option(s) {', '.join(unknown)}"
@@ -291,7 +291,7 @@ def plan_step(raw: dict, where: str, job_name: str, job_id: str, out: Path,
         method = raw.get("method") if isinstance(raw, dict) else None
         if isinstance(method, str):
             try:
-                keys |= set(_option_defaults(solver(method, where)[1], raw)[0])
+                keys |= set(option_defaults(solver(method, where)[1], raw)[0])
             except (SonarsimError, TypeError, ValueError):
                 pass
         text = _manifest_words(str(exc), keys)

@@ -237,3 +237,53 @@ def test_subsample_is_refused_in_one_line():
                           cwd=ROOT)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     assert "--angle-step" in proc.stderr.strip().splitlines()[-1]
+
+
+def test_data_dir_adopts_the_same_simulation_only(table2, tmp_path):
+    """``--data DIR``: a scan made outside the batch (no batch metadata) that is the job's
+    simulation is adopted (copied with the job's id, so the batch skips the simulation); a
+    scan that differs in one recorded setting (the seed) or one pose is refused, naming it,
+    and DIR is only read."""
+    from sonarsim.batch import plan_batch
+    from sonarsim.batch.records import dataset_record
+    from sonarsim.batch.tasks import run_simulation
+    from sonarsim.dataset import SonarDataset
+    base = table2.replace(table2.SIZES["quick"], angle_step=90, height_step=75)
+    cells = table2.cells_of(["bp"], ["cube"], base)[:1]
+
+    def plan_in(where: Path):
+        doc, _ = table2.manifest(cells, base, where)
+        table2.write_manifest(doc, where / "batch" / "table2.toml")
+        return plan_batch(where / "batch" / "table2.toml", where / "batch", log=lambda m: None)
+
+    made = plan_in(tmp_path / "a").jobs[0]
+    run_simulation(made)
+    scan = SonarDataset.read(made.output)
+    scan.meta = {k: v for k, v in scan.meta.items() if not k.startswith("batch_")}
+    data = tmp_path / "data"
+    data.mkdir()
+    scan.write(data / "cube_scan.h5")
+    other_seed = SonarDataset.read(data / "cube_scan.h5")
+    other_seed.seed = 2
+    other_seed.write(data / "cube_seed2.h5")
+    moved = SonarDataset.read(data / "cube_scan.h5")
+    moved.tx = moved.tx.copy()
+    moved.tx[3, 0] += 1e-4
+    moved.write(data / "cube_moved.h5")
+    before = {p.name: p.stat().st_mtime_ns for p in data.iterdir()}
+
+    job = plan_in(tmp_path / "b").jobs[0]
+    assert dataset_record(job.output, job.job_id) is None
+    assert table2.simulation_mismatches(data / "cube_scan.h5", job) == []
+    assert table2.simulation_mismatches(data / "cube_seed2.h5", job) == ["seed"]
+    assert table2.simulation_mismatches(data / "cube_moved.h5", job) == ["tx"]
+    (data / "cube_scan.h5").rename(data / "zz_cube_scan.h5")     # the mismatches come first
+    before["zz_cube_scan.h5"] = before.pop("cube_scan.h5")
+    logged: list[str] = []
+    adopted = table2.adopt_datasets(plan_in(tmp_path / "b"), data, log=logged.append)
+    assert adopted == {job.name: str(data / "zz_cube_scan.h5")}
+    assert dataset_record(job.output, job.job_id) is not None
+    assert SonarDataset.read(job.output).meta["adopted_from"] == str(data / "zz_cube_scan.h5")
+    assert np.array_equal(SonarDataset.read(job.output).waveforms, scan.waveforms)
+    assert any("cube_seed2.h5" in m and "seed" in m for m in logged)
+    assert {p.name: p.stat().st_mtime_ns for p in data.iterdir()} == before
