@@ -379,41 +379,88 @@ def deconvolved(job, spec: dict) -> SonarDataset:
         return result
 
 
+def _own_volume(step: ReconStep) -> bool:
+    """True if the step's volume file is complete and this step's (its id in the params)."""
+    from sonarsim.dataset import KIND_VOLUME, inspect
+    path = Path(step.output)
+    if not path.is_file():
+        return False
+    try:
+        with inspect(path) as (kind, fields_):
+            return kind == KIND_VOLUME and \
+                (fields_.get("params") or {}).get("batch_step_id") == step.step_id
+    except (SonarsimError, OSError):
+        return False
+
+
+def _own_metrics(step: ReconStep, evaluation: Evaluation) -> dict | None:
+    """The saved metrics file of ``evaluation`` if it is this step's, else None."""
+    try:
+        saved = json.loads(Path(evaluation.output).read_text())
+    except (OSError, ValueError):
+        return None
+    return saved if isinstance(saved, dict) and saved.get("batch_step_id") == step.step_id \
+        else None
+
+
 def reconstruct(job, step: ReconStep) -> dict:
     """Reconstruct (and evaluate) a batch job's dataset as its step asks; {'ran': True,
     **metrics} (an evaluation's metrics prefixed with its name). The grid is checked against
-    the data as ``recon backproject`` checks it."""
+    the data as ``recon backproject`` checks it.
+
+    A step whose volume is already there (complete, with this step's id) but one of whose
+    metrics files is missing or not its own (e.g. deleted to re-evaluate with changed
+    evaluation code) is not solved again: only the missing evaluations run, and the wall
+    times of the solve are taken over from the step's remaining metrics files."""
     from .evaluation import evaluate_file, json_safe
     from .grid import scene_box_of
-    from .metrics import load_gt_mesh
+    from .groundtruth import load_ground_truth
     s = step.settings
-    mod = importlib.import_module(s["module"])
     wall = {}
-    t0 = time.perf_counter()
-    if s.get("deconvolve"):
-        dataset = deconvolved(job, s["deconvolve"])
-        wall["deconvolve"] = time.perf_counter() - t0
+    reuse = bool(step.evaluations) and _own_volume(step)
+    if reuse:
+        kept = [m for m in (_own_metrics(step, e) for e in step.evaluations) if m is not None]
+        wall = {k: v for k, v in (kept[0].get("wall_s", {}) if kept else {}).items()
+                if not k.startswith("evaluate")}
+        wall["reused_volume"] = True
     else:
-        dataset = SonarDataset.read(job.output)
-    checks.check_signal(dataset, job.output, warn=lambda m: None)
-    grid = grid_from_options(box_bounds(scene_box_of(dataset)), s["bounds"], s["shape"],
-                             s["voxel_size"])
-    checks.check_grid(dataset, grid, checks.bytes_per_voxel_of(mod))
-    t0 = time.perf_counter()
-    volume = mod.solve(dataset, grid, progress=False, **s["options"])
-    wall["solve"] = time.perf_counter() - t0
-    del dataset
-    volume.params.update(dataset=job.output, batch_step_id=step.step_id,
-                         batch_step=json.dumps(step.params, sort_keys=True))
-    if not step.evaluations:
-        volume.write(step.output)
-        return {"ran": True}
+        mod = importlib.import_module(s["module"])
+        t0 = time.perf_counter()
+        if s.get("deconvolve"):
+            dataset = deconvolved(job, s["deconvolve"])
+            wall["deconvolve"] = time.perf_counter() - t0
+        else:
+            dataset = SonarDataset.read(job.output)
+        checks.check_signal(dataset, job.output, warn=lambda m: None)
+        grid = grid_from_options(box_bounds(scene_box_of(dataset)), s["bounds"], s["shape"],
+                                 s["voxel_size"])
+        checks.check_grid(dataset, grid, checks.bytes_per_voxel_of(mod))
+        t0 = time.perf_counter()
+        volume = mod.solve(dataset, grid, progress=False, **s["options"])
+        wall["solve"] = time.perf_counter() - t0
+        del dataset
+        volume.params.update(dataset=job.output, batch_step_id=step.step_id,
+                             batch_step=json.dumps(step.params, sort_keys=True))
+        if not step.evaluations:
+            volume.write(step.output)
+            return {"ran": True}
     metrics = {}
-    gt = load_gt_mesh(job.output)
-    with atomic_path(step.output, keep_suffix=False) as tmp_volume:
-        volume.write(tmp_volume)         # evaluated before it becomes the step's output
+    gt = load_ground_truth(job.output)      # the dataset's placed mesh, named (its scene's cameras)
+    import contextlib
+    target = contextlib.nullcontext(Path(step.output)) if reuse else \
+        atomic_path(step.output, keep_suffix=False)
+    with target as tmp_volume:              # a reused volume is evaluated where it is
+        if not reuse:
+            volume.write(tmp_volume)        # evaluated before it becomes the step's output
         results = []
         for evaluation in step.evaluations:
+            saved = _own_metrics(step, evaluation) if reuse else None
+            if saved is not None:
+                for k, v in saved.get("wall_s", {}).items():
+                    if k.startswith("evaluate"):
+                        wall.setdefault(k, v)
+                results.append((evaluation, saved["metrics"], False))
+                continue
             options = dict(evaluation.options)
             options.setdefault("sweep", True)
             crop = options.pop("crop", None)
@@ -422,12 +469,13 @@ def reconstruct(job, step: ReconStep) -> dict:
             wall[f"evaluate{'_' + evaluation.name if evaluation.name else ''}"] = \
                 time.perf_counter() - t0
             result["volume"] = step.output
-            results.append((evaluation, json_safe(result)))
-        for evaluation, result in results:
-            with atomic_path(evaluation.output) as tmp:
-                tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
-                                           "evaluation": evaluation.name, "wall_s": wall,
-                                           "metrics": result}, indent=1))
+            results.append((evaluation, json_safe(result), True))
+        for evaluation, result, new in results:
+            if new:
+                with atomic_path(evaluation.output) as tmp:
+                    tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
+                                               "evaluation": evaluation.name, "wall_s": wall,
+                                               "metrics": result}, indent=1))
             prefix = f"{evaluation.name}_" if evaluation.name else ""
             metrics.update({prefix + k: v for k, v in summary_metrics(result).items()})
     return {"ran": True, **metrics}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sonarsim.errors import InputError
+from sonarsim.errors import InputError, SonarsimError
 
 from . import export, groundtruth, metrics, protocol_reference, views
 
@@ -37,12 +37,26 @@ def _as_ground_truth(gt) -> groundtruth.GroundTruth:
     return groundtruth.load_ground_truth(gt)
 
 
+def gt_shape_name(gt: groundtruth.GroundTruth) -> str | None:
+    """The GT's shape name (which of the reference's cameras render it): a dataset's scene
+    name (meta ``scene``), else the stem of the ``--gt`` file or scene name."""
+    if gt.kind == "dataset":
+        from sonarsim.dataset import inspect
+        try:
+            with inspect(gt.source) as (_, fields_):
+                return (fields_.get("meta") or {}).get("scene")
+        except (SonarsimError, OSError):
+            return None
+    return Path(str(gt.source)).stem
+
+
 def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD,
                   normalize: str = "minmax", sweep: bool = True, images: bool = True,
                   samples: int = metrics.N_SURFACE_SAMPLES, seed: int = 0, crop=None,
                   protocol: str = "exact",
                   volume_samples: int = protocol_reference.N_VOLUME_SAMPLES,
-                  view_resolution: int | None = None, mapping: str = "reference") -> dict:
+                  view_resolution: int | None = None, mapping: str = "reference",
+                  reference_views: str = "paper") -> dict:
     """All metrics of one reconstruction file against ``gt`` (a ``--gt`` spec, a
     :class:`recon.groundtruth.GroundTruth` or a trimesh).
 
@@ -53,6 +67,8 @@ def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD
     metrics render the (cropped) reconstruction against the whole GT mesh;
     ``view_resolution`` overrides the protocol's image size (pixels, e.g. for quick runs).
     ``mapping``: the reference protocol's vertex mapping (``protocol_reference.MAPPINGS``).
+    ``reference_views``: the reference protocol's cameras (:func:`recon.views.reference_views`:
+    'paper', its camera table for the GT's shape name, or 'released', the 60-rad views).
 
     The result names the ground truth (``gt``: source, kind, frame, bounds) and carries
     ``warnings`` (one line each) about it: a mesh file scored as given while the volume's
@@ -67,7 +83,7 @@ def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD
     gt = _as_ground_truth(gt)
     box = None if crop is None else np.asarray(crop, dtype=np.float64).reshape(3, 2)
     if protocol == "reference":
-        cams, reference = views.REFERENCE_VIEWS, True
+        cams, reference = views.reference_views(gt_shape_name(gt), reference_views), True
         if normalize != "minmax":
             raise InputError("--protocol reference normalises min-max (as the reference); "
                              "drop --normalize")
@@ -114,7 +130,10 @@ def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD
     if images:
         result.update(views.image_metrics(gt.mesh, mesh, cams, reference=reference))
         result["views"] = {"n_views": cams.n_views, "resolution": cams.resolution,
-                           "yfov_rad": cams.yfov}
+                           "yfov_rad": cams.yfov, "distance_m": cams.distance,
+                           "elevation_m": cams.elevation, "look_height_m": cams.look_height}
+        if reference:
+            result["views"]["set"] = reference_views
     result["gt"] = gt.describe()
     result["warnings"] = warnings
     return result

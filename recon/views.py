@@ -8,9 +8,14 @@ Mitsuba's ``scene.ray_intersect`` on the CPU variant, so no OpenGL or RGB varian
   (r·cos(90° − a), r·sin(90° − a), elevation), r = √(distance² − elevation²) (distance from the
   origin 0.3 m, elevation 0.1 m), looking at (0, 0, 0.1) with z up; near plane 5 cm (pyrender's
   default). ``yfov`` is the value pyrender's ``PerspectiveCamera`` receives, in radians: the
-  exact protocol uses π/3 (60°); the reference's command line passes ``--fov 60``, which pyrender
-  reads as 60 *radians*: tan(30) = −6.4, i.e. a 162° field of view with the image turned by 180°
-  — reproduced under ``--protocol reference`` (``REFERENCE_VIEWS``).
+  exact protocol uses π/3 (60°). ``--protocol reference`` uses the reference's camera table
+  (:data:`REFERENCE_CAMERAS`, its ``evaluate/predefined_configs.py``: π/3 at 0.3 m, the cube
+  and cylinder from 0.45 m with π/4), with which its evaluation code of 2023-04
+  (``evaluate/main_render.py`` at commit 4cd4190) rendered every mesh; the released command line
+  of 2023-06 (``evaluate/main_render.sh``) passes ``--fov 60`` instead, which pyrender reads
+  as 60 *radians*: tan(30) = −6.4, a 162° field of view with the image turned by 180°
+  (:data:`RELEASED_VIEWS`, ``--reference-views released``). The camera table gives depth PSNRs
+  in the published range (docs/evaluation.md), the released one 10–20 dB above it.
 * ``depth``: distance along the camera axis (m), 0 where no surface is hit (pyrender's
   convention); ``shaded``: ``|n · v|`` headlight Lambert shading in [0, 1] (v = view ray).
 * PSNR over the whole stack of views (one MSE), SSIM averaged over views (scikit-image;
@@ -131,9 +136,37 @@ def ssim(reference: np.ndarray, test: np.ndarray, data_range: float = 1.0,
                                           np.asarray(test, np.float64))]))
 
 
-# The reference's ten views at 512² with pyrender reading "--fov 60" as 60 radians.
-REFERENCE_VIEWS = Turntable(n_views=10, distance=0.3, elevation=0.1, look_height=0.1,
-                            yfov=60.0, resolution=512)
+# The reference's cameras (evaluate/predefined_configs.py, get_camera_pose_dict; yfov in radians
+# as pyrender takes it): distance from the origin (m), camera height, look-at height, yfov.
+REFERENCE_CAMERAS = {
+    "default": {"distance": 0.3, "elevation": 0.1, "look_height": 0.1, "yfov": float(np.pi / 3)},
+    "xyz_dragon": {"distance": 0.35, "elevation": 0.1, "look_height": 0.1,
+                   "yfov": float(np.pi / 3)},
+    "lucy": {"distance": 0.25, "elevation": 0.1, "look_height": 0.1, "yfov": float(np.pi / 3)},
+    "cube": {"distance": 0.45, "elevation": 0.21, "look_height": 0.07, "yfov": float(np.pi / 4)},
+    "cylinder": {"distance": 0.45, "elevation": 0.1, "look_height": 0.1, "yfov": float(np.pi / 4)},
+}
+# The reference's ten views at 512² with its camera table's default (the paper-era renders)...
+REFERENCE_VIEWS = Turntable(n_views=10, resolution=512, **REFERENCE_CAMERAS["default"])
+# ... and with its released command line's "--fov 60", which pyrender reads as 60 radians.
+RELEASED_VIEWS = Turntable(n_views=10, distance=0.3, elevation=0.1, look_height=0.1,
+                           yfov=60.0, resolution=512)
+REFERENCE_VIEW_SETS = ("paper", "released")
+
+
+def reference_views(shape: str | None, which: str = "paper") -> Turntable:
+    """The reference protocol's cameras for the GT shape named ``shape`` (e.g. 'cube'; None
+    or an unknown name: the table's default): ``which='paper'`` the camera table
+    (:data:`REFERENCE_CAMERAS`), ``'released'`` the released command line's 60-rad views
+    (the same for every shape)."""
+    from sonarsim.errors import InputError
+    if which not in REFERENCE_VIEW_SETS:
+        raise InputError(f"reference views: choose one of {', '.join(REFERENCE_VIEW_SETS)}, "
+                         f"got {which!r}")
+    if which == "released":
+        return RELEASED_VIEWS
+    from dataclasses import replace
+    return replace(REFERENCE_VIEWS, **REFERENCE_CAMERAS.get(str(shape), REFERENCE_CAMERAS["default"]))
 
 
 def image_metrics(gt_mesh: trimesh.Trimesh, mesh: trimesh.Trimesh,
@@ -141,7 +174,7 @@ def image_metrics(gt_mesh: trimesh.Trimesh, mesh: trimesh.Trimesh,
     """PSNR and SSIM of depth and shaded renders of ``mesh`` against ``gt_mesh``.
 
     ``reference=False`` (exact protocol): depth clipped to [0, 1] m, data range 1, SSIM with
-    scikit-image's 7 × 7 window. ``reference=True`` (use ``cams=REFERENCE_VIEWS``): the
+    scikit-image's 7 × 7 window. ``reference=True`` (use ``cams=reference_views(shape)``): the
     reference's ``main_image_space_loss.py`` on depth images in metres, unclipped: PSNR with
     the data range of the reconstruction's images, SSIM with torchmetrics' Gaussian window and
     data range 1; the shaded images get the same treatment.

@@ -391,6 +391,16 @@ def test_cli_evaluate_reference_protocol(tmp_path, capsys, mi):
                                     threshold=0.5, sweep=None, chamfer_sweep=None)
     assert res["iou"] == api["iou"] > 0.7 and res["chamfer_sq"] == api["chamfer_sq"] < 2e-5
     assert res["psnr_depth"] > 25 and 0.9 < res["ssim_depth"] <= 1.0
+    # the reference's camera table for a GT named 'cube': 0.45 m, yfov pi/4, looking at 7 cm
+    assert res["views"] == {"n_views": 10, "resolution": 512, "yfov_rad": pytest.approx(np.pi / 4),
+                            "distance_m": 0.45, "elevation_m": 0.21, "look_height_m": 0.07,
+                            "set": "paper"}
+    assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--json", "--threshold",
+                 "0.5", "--protocol", "reference", "--no-sweep", "--reference-views",
+                 "released"]) == 0
+    released = json.loads(capsys.readouterr().out)
+    assert released["views"]["yfov_rad"] == 60.0 and released["views"]["distance_m"] == 0.3
+    assert released["iou"] == res["iou"] and released["psnr_depth"] != res["psnr_depth"]
     assert main(["evaluate", str(tmp_path / "v.h5"), "--gt", str(gt), "--protocol",
                  "reference", "--normalize", "max"]) == 2
     with pytest.raises(SystemExit) as exc:
@@ -494,6 +504,25 @@ def test_degenerate_ground_truths_are_refused_or_warned_in_one_line(tmp_path, ca
         "nan.obj", "none.ply")]) == 2
 
 
+def test_reference_camera_table_per_shape():
+    """--protocol reference's cameras: the reference's camera table (predefined_configs.py) by
+    the GT's shape name, its default for other names; 'released' = the 60-rad views."""
+    from recon import views
+    from sonarsim.errors import InputError
+    cube = views.reference_views("cube")
+    assert (cube.distance, cube.elevation, cube.look_height) == (0.45, 0.21, 0.07)
+    assert cube.yfov == pytest.approx(np.pi / 4) and cube.n_views == 10 and cube.resolution == 512
+    assert views.reference_views("cylinder").distance == 0.45
+    assert views.reference_views("lucy").distance == 0.25
+    for name in ("bunny", None, "anything"):
+        assert views.reference_views(name) == views.REFERENCE_VIEWS
+    assert views.REFERENCE_VIEWS.yfov == pytest.approx(np.pi / 3)
+    assert views.reference_views("cube", "released") == views.RELEASED_VIEWS
+    assert views.RELEASED_VIEWS.yfov == 60.0
+    with pytest.raises(InputError):
+        views.reference_views("cube", "nope")
+
+
 def test_reference_views_read_60_as_radians_like_pyrender(mi):
     """yfov = 60 (radians, as pyrender receives the reference's '--fov 60'): tan(30) < 0, so
     the render is the one with a 2·atan(|tan 30|) = 162° field of view turned by 180°; its
@@ -501,7 +530,7 @@ def test_reference_views_read_60_as_radians_like_pyrender(mi):
     import dataclasses
 
     from recon import views
-    cams = dataclasses.replace(views.REFERENCE_VIEWS, n_views=2, resolution=40)
+    cams = dataclasses.replace(views.RELEASED_VIEWS, n_views=2, resolution=40)
     wide = dataclasses.replace(cams, yfov=2 * np.arctan(abs(np.tan(30.0))))
     assert np.degrees(wide.yfov) == pytest.approx(162.26, abs=0.01)
     bunnyish = trimesh.creation.icosphere(subdivisions=3, radius=0.06).apply_translation(

@@ -287,3 +287,20 @@ def test_data_dir_adopts_the_same_simulation_only(table2, tmp_path):
     assert np.array_equal(SonarDataset.read(job.output).waveforms, scan.waveforms)
     assert any("cube_seed2.h5" in m and "seed" in m for m in logged)
     assert {p.name: p.stat().st_mtime_ns for p in data.iterdir()} == before
+
+    # the batch on the adopted scan: no simulation; then a deleted metrics file is evaluated
+    # again on the step's own volume, which is not solved again
+    first = table2.run_batch(cells, base, tmp_path / "b")[0]
+    assert first["stages_s"]["dataset_s"] is None          # adopted: not simulated
+    volume = Path(first["volume"])
+    stamp = volume.stat().st_mtime_ns
+    ref_json = volume.with_name(volume.name[:-3] + ".reference.json")
+    saved = json.loads(ref_json.read_text())
+    ref_json.unlink()
+    again = table2.run_batch(cells, base, tmp_path / "b")[0]
+    assert volume.stat().st_mtime_ns == stamp               # not solved again
+    redone = json.loads(ref_json.read_text())
+    assert redone["wall_s"]["reused_volume"] is True
+    assert redone["wall_s"]["solve"] == saved["wall_s"]["solve"]
+    assert again["reference"]["iou"] == first["reference"]["iou"]
+    assert again["reference"]["chamfer_sq"] == first["reference"]["chamfer_sq"]
