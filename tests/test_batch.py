@@ -1,5 +1,5 @@
-"""sonarsim batch: manifest expansion and validation, job identity, Dask execution (a 2-worker
-LocalCluster), byte-identical outputs, failures, killed workers, re-runs, batch.csv."""
+"""sonarsim batch: manifest expansion and validation, job identity, Dask execution (a 1-worker
+process LocalCluster), byte-identical outputs, failures, killed workers, re-runs, batch.csv."""
 from __future__ import annotations
 
 import csv
@@ -65,8 +65,12 @@ snr_db = 10
 
 @pytest.fixture(scope="module")
 def client():
+    """A Dask cluster of one worker process: each job runs in another process than the test
+    (its own imports, Dr.Jit state and kernels), which is what these tests need; every
+    assertion reads the same with one worker as with two, and each worker process costs
+    ~3 CPU-s of imports and kernel loading (a killed one, again on its restart)."""
     from distributed import Client, LocalCluster
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                            dashboard_address=None, silence_logs=logging.CRITICAL)
     c = Client(cluster)
     yield c
@@ -310,7 +314,7 @@ def test_killed_worker_loses_only_its_job(client, tmp_path, mesh_dir):
     for job in plan.jobs:
         assert batch.dataset_record(job.output, job.job_id) is not None
     assert not list((tmp_path / "out").glob("*.partial"))
-    client.wait_for_workers(2, timeout=60)
+    client.wait_for_workers(1, timeout=60)
 
 
 def test_reconstruction_and_evaluation_step(tmp_path, capsys):
