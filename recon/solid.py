@@ -16,6 +16,12 @@ occupancy whose boundary is the surface. :func:`solidify` makes one from the fie
    box's boundary become occupied (``scipy.ndimage.binary_fill_holes``). With ``floor=True``
    the grid's lowest z plane counts as closed (the rig's ground, on which scanned objects
    stand), so a shell open only at its base is filled down to the ground.
+5. **fill what no sensor saw** (with ``sensors`` and ``hidden`` > 0): an empty voxel from which
+   the straight line toward each of ``hidden`` sensor positions (spread over the scan) meets
+   an occupied voxel is hidden from the whole scan; the data say nothing about it, and for an
+   object it is interior (a cavity reached only through a narrow or oblique opening, a base
+   under an overhang). Such voxels become occupied, then step 4 runs again
+   (:func:`hidden_from`).
 
 What it does to other objects: an open object (a bowl open upward, an arch, a tube open at an
 end) keeps its opening, because its inside is joined to the boundary through it, and is not
@@ -31,7 +37,7 @@ from scipy import ndimage
 
 from sonarsim.errors import InputError
 
-DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True)
+DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0)
 
 
 def occupancy(volume: np.ndarray, threshold: float) -> np.ndarray:
@@ -72,6 +78,66 @@ def fill_enclosed(occupied: np.ndarray, floor: bool) -> np.ndarray:
     return ndimage.binary_fill_holes(padded)[:, :, 1:]
 
 
+def sensor_directions(sensors: np.ndarray, count: int, centre: np.ndarray) -> np.ndarray:
+    """float [K, 3] unit vectors from ``centre`` toward ``count`` sensor positions taken evenly
+    along the scan's ping order (K = min(count, N); ``sensors`` [N, 3] in metres)."""
+    sensors = np.asarray(sensors, dtype=np.float64).reshape(-1, 3)
+    picks = np.unique(np.linspace(0, len(sensors) - 1, min(int(count), len(sensors))).round())
+    toward = sensors[picks.astype(np.int64)] - np.asarray(centre, dtype=np.float64)
+    norms = np.linalg.norm(toward, axis=1, keepdims=True)
+    return toward[norms[:, 0] > 0] / norms[norms[:, 0] > 0]
+
+
+def _blocked_along(sub: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """bool like ``sub``: voxels whose ray along ``step`` (voxels per unit step, [3]) meets a
+    True voxel of ``sub`` beyond itself (one shifted OR per distinct rounded offset)."""
+    shape = np.array(sub.shape)
+    blocked = np.zeros_like(sub)
+    last = None
+    for t in range(1, int(np.ceil(np.linalg.norm(shape))) + 2):
+        o = np.round(t * step).astype(np.int64)
+        if np.any(np.abs(o) >= shape):
+            break
+        if last is not None and np.array_equal(o, last):
+            continue
+        last = o
+        src = tuple(slice(max(o[a], 0), shape[a] + min(o[a], 0)) for a in range(3))
+        dst = tuple(slice(max(-o[a], 0), shape[a] + min(-o[a], 0)) for a in range(3))
+        blocked[dst] |= sub[src]
+    return blocked
+
+
+def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int) -> np.ndarray:
+    """bool like ``occupied``: the empty voxels hidden from ``count`` sensor positions, i.e. the
+    straight line from the voxel toward each of them meets an occupied voxel.
+
+    Lines are parallel per sensor (the direction from the occupied set's centre to the sensor:
+    the far-field approximation, exact for sensors far compared with the object) and stepped
+    one voxel at a time with rounding; only the occupied set's bounding box (+1 voxel) can be
+    hidden. spacing: [3] voxel size (m); sensors: [N, 3] positions (m) in the grid's frame,
+    relative to the grid's lower corner (the caller subtracts it). Cost: ``count`` × (the box's
+    diagonal in voxels) shifted ORs of the box (about 1 s for 144 sensors and a 60³ box).
+    """
+    occupied = np.asarray(occupied, dtype=bool)
+    out = np.zeros_like(occupied)
+    if not occupied.any() or count <= 0:
+        return out
+    spacing = np.asarray(spacing, dtype=np.float64)
+    idx = np.argwhere(occupied)
+    lo = np.maximum(idx.min(0) - 1, 0)
+    hi = np.minimum(idx.max(0) + 2, occupied.shape)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    sub = occupied[box]
+    centre = idx.mean(0) * spacing
+    hid = ~sub
+    for direction in sensor_directions(sensors, count, centre):
+        hid &= _blocked_along(sub, direction * spacing.min() / spacing)
+        if not hid.any():
+            break
+    out[box] = hid
+    return out
+
+
 def check_parameters(threshold: float, min_fraction: float, close, *,
                      names=("solid threshold", "solid min_fraction", "solid close"),
                      max_close: int | None = None) -> None:
@@ -88,16 +154,32 @@ def check_parameters(threshold: float, min_fraction: float, close, *,
 
 def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              min_fraction: float = DEFAULTS["min_fraction"], close: int = DEFAULTS["close"],
-             floor: bool = DEFAULTS["floor"]) -> np.ndarray:
+             floor: bool = DEFAULTS["floor"], hidden: int = DEFAULTS["hidden"],
+             sensors: np.ndarray | None = None, bounds=None) -> np.ndarray:
     """bool [nx, ny, nz]: the solid occupancy of a reconstructed field (module docstring).
 
     volume: complex or real [nx, ny, nz] (z the vertical axis, index 0 the lowest plane).
+    hidden: sensor positions to test visibility from (0 = step 5 off); sensors: [N, 3] the
+    scan's sensor positions (m) and bounds [3, 2] the volume's box (m), both needed with
+    ``hidden`` > 0.
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise InputError(f"solid extraction: expected a 3-D volume, got shape {volume.shape}")
     check_parameters(threshold, min_fraction, close)
+    if int(hidden) != hidden or hidden < 0:
+        raise InputError(f"solid hidden: must be an integer >= 0, got {hidden}")
     occupied = occupancy(volume, threshold)
     occupied = drop_small_components(occupied, min_fraction)
     occupied = close_gaps(occupied, int(close))
+    occupied = fill_enclosed(occupied, bool(floor))
+    if int(hidden) <= 0:
+        return occupied
+    if sensors is None or bounds is None:
+        raise InputError("solid extraction: hidden > 0 needs the sensor positions and the bounds")
+    bounds = np.asarray(bounds, dtype=np.float64)
+    n = np.array(volume.shape)
+    spacing = (bounds[:, 1] - bounds[:, 0]) / np.maximum(n - 1, 1)
+    relative = np.asarray(sensors, dtype=np.float64) - bounds[:, 0]
+    occupied = occupied | hidden_from(occupied, spacing, relative, int(hidden))
     return fill_enclosed(occupied, bool(floor))

@@ -102,3 +102,96 @@ def test_bad_settings_are_refused(kw):
 def test_not_3d_is_refused():
     with pytest.raises(InputError, match="3-D"):
         solid.solidify(np.ones((4, 4)))
+
+
+# ------------------------------------------------ step 5: what no sensor saw is filled
+
+def _ring(elevation_deg, count=24, radius=200.0, centre=(20.0, 20.0, 20.0)):
+    """Sensor positions (voxel units, spacing 1) on a horizontal ring around ``centre``, seen
+    from the centre at ``elevation_deg`` above the horizon."""
+    az = np.linspace(0, 2 * np.pi, count, endpoint=False)
+    el = np.deg2rad(elevation_deg)
+    return np.asarray(centre) + radius * np.stack(
+        [np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.full_like(az, np.sin(el))], 1)
+
+
+def _box_with_chimney():
+    """A hollow box (walls 2 voxels) whose cavity opens to the top through a 4×4 chimney:
+    its inside is joined to the outside, so step 4 alone cannot fill it."""
+    box = np.zeros((N,) * 3, dtype=bool)
+    box[10:30, 10:30, 10:30] = True
+    cavity = np.zeros_like(box)
+    cavity[12:28, 12:28, 12:28] = True
+    box &= ~cavity
+    box[18:22, 18:22, 28:30] = False
+    cavity[18:22, 18:22, 28:30] = True
+    return box, cavity
+
+
+def test_cavity_hidden_from_a_side_looking_scan_is_filled():
+    """Sensors that look at the box from the side (10° up) never see into the cavity through
+    the chimney: step 5 fills it; outside the box, only the plane right under its floor (the
+    box's shadow, within the one-voxel margin searched) is hidden too."""
+    box, cavity = _box_with_chimney()
+    bounds = np.array([[0.0, N - 1.0]] * 3)
+    kw = dict(threshold=0.5, min_fraction=0.0, close=0, floor=False)
+    plain = solid.solidify(_as_field(box), **kw)
+    assert not plain[cavity].any()
+    out = solid.solidify(_as_field(box), hidden=24, sensors=_ring(10.0), bounds=bounds, **kw)
+    assert out[:, :, :28][cavity[:, :, :28]].all()
+    extra = out & ~(box | cavity)
+    assert np.array_equal(np.flatnonzero(extra.any(axis=(0, 1))), [9])
+    assert not extra[:, :, 9][~box[:, :, 10]].any()
+
+
+def test_cavity_seen_from_above_stays_open():
+    """The same box seen from steep sensors (80° up) is looked into through the chimney: the
+    cavity's voxels under the chimney are visible and stay empty."""
+    box, cavity = _box_with_chimney()
+    bounds = np.array([[0.0, N - 1.0]] * 3)
+    out = solid.solidify(_as_field(box), threshold=0.5, min_fraction=0.0, close=0, floor=False,
+                         hidden=24, sensors=_ring(80.0), bounds=bounds)
+    assert not out[19:21, 19:21, 14:28].any()
+
+
+def _hidden_by_marching(occupied, directions):
+    """Straightforward reference: per empty voxel and direction, walk t = 1, 2, ... voxels
+    along the direction (rounded to the nearest voxel) until a True voxel or the box's edge."""
+    shape = np.array(occupied.shape)
+    out = np.zeros_like(occupied)
+    for v in np.argwhere(~occupied):
+        hidden_all = True
+        for d in directions:
+            t, met = 1, False
+            while True:
+                p = v + np.round(t * d).astype(int)
+                if np.any(p < 0) or np.any(p >= shape):
+                    break
+                if occupied[tuple(p)]:
+                    met = True
+                    break
+                t += 1
+            if not met:
+                hidden_all = False
+                break
+        out[tuple(v)] = hidden_all
+    return out
+
+
+def test_hidden_from_matches_a_voxel_by_voxel_march():
+    rng = np.random.default_rng(3)
+    occupied = rng.random((9, 8, 7)) < 0.35
+    occupied[0, 0, 0] = occupied[-1, -1, -1] = True   # the bounding box is the whole array
+    sensors = np.array([[50.0, 3.0, 20.0], [-40.0, -30.0, 10.0], [4.0, 60.0, -5.0]])
+    got = solid.hidden_from(occupied, np.ones(3), sensors, 3)
+    centre = np.argwhere(occupied).mean(0)
+    directions = solid.sensor_directions(sensors, 3, centre)
+    assert np.array_equal(got, _hidden_by_marching(occupied, directions))
+    assert 0 < got.sum() < (~occupied).sum()
+
+
+def test_hidden_needs_sensors_and_bounds():
+    with pytest.raises(InputError, match="sensor"):
+        solid.solidify(np.ones((4, 4, 4)), hidden=4)
+    with pytest.raises(InputError, match="hidden"):
+        solid.solidify(np.ones((4, 4, 4)), hidden=-1)

@@ -208,13 +208,17 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     return opt.params, history, info
 
 
-def solid_volume(field: np.ndarray, settings: SolverSettings) -> tuple[np.ndarray, int]:
+def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarray | None = None,
+                 bounds=None) -> tuple[np.ndarray, int]:
     """(complex64 volume 1 inside the solid of ``field`` and 0 outside, voxels of the field
-    above the solid threshold): :func:`recon.solid.solidify` with the run's settings."""
+    above the solid threshold): :func:`recon.solid.solidify` with the run's settings
+    (``sensors`` [N, 3] m: the scan's sensor positions, ``bounds`` [3, 2] m: the field's box,
+    both used by ``solid_hidden``)."""
     from .. import solid
     occupied = solid.solidify(field, threshold=settings.solid_threshold,
                               min_fraction=settings.solid_min_fraction,
-                              close=int(settings.solid_close), floor=settings.solid_ground)
+                              close=int(settings.solid_close), floor=settings.solid_ground,
+                              hidden=int(settings.solid_hidden), sensors=sensors, bounds=bounds)
     above = int(np.count_nonzero(solid.occupancy(field, settings.solid_threshold)))
     return occupied.astype(np.complex64), above
 
@@ -260,7 +264,8 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     vol = scene.volume(params, out_grid)
     p = {k: v for k, v in asdict(settings).items() if applies_to(k, network)}
     if settings.output == "solid":
-        vol, p["field_occupied_voxels"] = solid_volume(vol, settings)
+        sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
+        vol, p["field_occupied_voxels"] = solid_volume(vol, settings, sensors, out_grid.bounds)
         p["solid_voxels"] = int(np.count_nonzero(vol))
     p["preset"] = preset or "none"
     p["scene"] = scene.kind

@@ -63,6 +63,7 @@ class SolverSettings(NetworkSettings):
     solid_min_fraction: float = 0.1
     solid_close: int = 1
     solid_ground: bool = True
+    solid_hidden: int = 0
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -90,6 +91,8 @@ class SolverSettings(NetworkSettings):
         check_parameters(self.solid_threshold, self.solid_min_fraction, self.solid_close,
                          names=("solid_threshold", "solid_min_fraction", "solid_close"),
                          max_close=10)
+        if int(self.solid_hidden) != self.solid_hidden or not 0 <= self.solid_hidden <= 4096:
+            raise InputError(f"solid_hidden: must be an integer in [0, 4096], got {self.solid_hidden}")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
         from ..scattering import check_settings
@@ -174,6 +177,8 @@ HELP = {
     "solid_min_fraction": "solid: drop connected parts smaller than this fraction of the largest "
                           "(floaters)",
     "solid_close": "solid: close gaps of the occupied set by this many voxels",
+    "solid_hidden": "solid: fill the voxels that the occupied set hides from this many sensor "
+                    "positions spread over the scan (0 = off; recon.solid step 5)",
     "solid_ground": "solid: the grid's lowest z plane is the ground, so a shell standing on it "
                     "is filled",
     "warm_start_lr": "NBP: Adam learning rate of the warm start (absolute; the fit is to the "
