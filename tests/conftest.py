@@ -86,16 +86,18 @@ def within_one_voxel(index, grid, point) -> bool:
     return bool(np.all(np.abs(grid.position_of(index) - np.asarray(point)) <= grid.spacing + 1e-12))
 
 
-#: Test modules by measured CPU time, the costliest first (house, 2026-11-25: CPU-s per file
-#: of the whole suite at 3904e5c on the shared 2-core machine: test_table2 90, test_metrics 28,
-#: test_batch 28, test_gradient_descent 21, test_nbp 19, test_plot 17, test_reliability 16,
-#: test_examples 16, test_refine 15; every other file < 10). Under pytest-xdist
-#: (``make test``: ``-n 2 --dist loadfile``) files are handed to the workers in this order,
-#: so the longest ones start first and the short ones fill the gaps at the end.
-COSTLIEST_FIRST = ("test_table2.py", "test_batch.py", "test_metrics.py", "test_gradient_descent.py",
-                   "test_nbp.py", "test_plot.py", "test_reliability.py", "test_examples.py",
-                   "test_refine.py", "test_layout.py", "test_simulate.py", "test_runtime.py",
-                   "test_fidelity.py")
+#: Test modules by measured CPU time, the costliest first (house, 2026-11-25 03:25: CPU-s per
+#: file of ``make test``'s -n 2 run at 5cde4be on the shared 2-core machine, test_batch after
+#: bcf8bdc: test_table2 64, test_metrics 28, test_batch 22, test_refine 20, test_examples 19,
+#: test_nbp 19, test_reliability 17, test_plot 15, test_layout 12, test_simulate 10,
+#: test_scattering 9, test_runtime 8, test_gradient_descent 8, test_fidelity 6,
+#: test_differentiable 5; every other file < 5). Under pytest-xdist (``make test``:
+#: ``-n 2 --dist loadfile``) files are handed to the workers in this order, so the longest
+#: ones start first and the short ones fill the gaps at the end.
+COSTLIEST_FIRST = ("test_table2.py", "test_metrics.py", "test_batch.py", "test_refine.py",
+                   "test_examples.py", "test_nbp.py", "test_reliability.py", "test_plot.py",
+                   "test_layout.py", "test_simulate.py", "test_scattering.py", "test_runtime.py",
+                   "test_gradient_descent.py", "test_fidelity.py", "test_differentiable.py")
 
 
 def pytest_collection_modifyitems(config, items):
