@@ -62,6 +62,12 @@ class RefineSettings:
     between the object and the ground). surface_spacing: the integrator's strata size (m);
     path_samples: its path-length quantiles per stratum. oversample: histogram bins per
     sample (None: the dataset's, else 20). seed: the batch order and the renderer's seeds.
+    envelope_blur: coarse to fine: the envelope stage compares the envelopes smoothed by a
+    Gaussian of σ = ``envelope_blur`` metres of one-way range at its first step, shrinking
+    linearly to 0 at its last (0: no smoothing): a capture range of several range
+    resolutions for surface that starts centimetres from the truth. uniform_adam: one
+    second-moment scale for all vertices (UniformAdam, Nicolet et al. 2021); False: Adam per
+    coordinate, so weakly lit surface (a top seen obliquely) moves as fast as the rest.
 
     support_steps: steps of the support stage that runs first (0: none): the mesh is cut
     into patches of about ``patch_size`` (m, k-means of the face centroids), each patch's
@@ -83,6 +89,8 @@ class RefineSettings:
     path_samples: int = 4
     oversample: int | None = None
     seed: int = 0
+    envelope_blur: float = 0.0
+    uniform_adam: bool = True
     support_steps: int = 0
     patch_size: float = 0.025
     support_keep: float = 0.7
@@ -100,6 +108,8 @@ class RefineSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a positive number, got {v}")
+        if not (np.isfinite(self.envelope_blur) and self.envelope_blur >= 0):
+            raise InputError(f"envelope_blur must be a non-negative number (m), got {self.envelope_blur}")
         if not (np.isfinite(self.support_keep) and 0 <= self.support_keep < 1):
             raise InputError(f"support_keep must be in [0, 1), got {self.support_keep}")
         if self.envelope_steps + self.waveform_steps + self.support_steps == 0:
@@ -339,8 +349,10 @@ class _Objective:
         self.envelope = Envelope(dataset.pulse, dataset.n_samples)
         self._data_env: dict = {}
 
-    def __call__(self, stage: str, hist: np.ndarray, batch: int, index: np.ndarray):
-        """(loss, α, ∂loss/∂hist [n, bins]) of histograms [n, bins] (bounces summed)."""
+    def __call__(self, stage: str, hist: np.ndarray, batch: int, index: np.ndarray,
+                 sigma: float = 0.0):
+        """(loss, α, ∂loss/∂hist [n, bins]) of histograms [n, bins] (bounces summed);
+        sigma: the envelopes' smoothing (samples, :func:`recon.pulse_chain.blur`)."""
         model = self.chain.forward(hist)
         y = np.asarray(self.data[index], np.float64)
         if stage == "waveform":
@@ -348,7 +360,7 @@ class _Objective:
         else:
             if batch not in self._data_env:
                 self._data_env[batch] = self.envelope(y)[0]
-            loss, alpha, grad = envelope_misfit(model, self._data_env[batch], self.envelope)
+            loss, alpha, grad = envelope_misfit(model, self._data_env[batch], self.envelope, sigma)
         return loss, alpha, self.chain.adjoint(grad)
 
 
@@ -391,7 +403,9 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     t0 = time.perf_counter()
     support = None
 
-    def misfit_and_backward(model, vertices_ad, albedo_ad, stage):
+    samples_per_metre = 2.0 * float(dataset.fs) / float(dataset.sound_speed)   # one-way range
+
+    def misfit_and_backward(model, vertices_ad, albedo_ad, stage, sigma=0.0):
         """One step's misfit (loss, alpha) of the next batch (a new batch order per pass over
         the batches) and its gradient propagated to ``vertices_ad`` and ``albedo_ad``."""
         nonlocal order
@@ -400,7 +414,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
         b = int(order[step % n_batches])
         hist = model.render(vertices_ad, albedo_ad, batches[b], settings.seed * 100_003 + 2 * step)
         h = hist.numpy().astype(np.float64).sum(axis=1)
-        loss, alpha, grad = objective(stage, h, b, batches[b])
+        loss, alpha, grad = objective(stage, h, b, batches[b], sigma)
         g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
         dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
         return loss, alpha
@@ -452,20 +466,22 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                                           window, ground, settings, workdir)
                     v0, f0 = model.vertices
                     ls = mi.ad.LargeSteps(v0, f0, settings.large_steps_lambda)
-                    opt = mi.ad.Adam(lr=settings.lr, uniform=True)
+                    opt = mi.ad.Adam(lr=settings.lr, uniform=settings.uniform_adam)
                     opt["u"] = ls.to_differential(v0)
                     opt_rho = mi.ad.Adam(lr=0.02)
                     opt_rho["log_albedo"] = mi.Float(log_albedo)
                     for j in range(seg):
                         frac = (done + j) / max(1, n_steps - 1)
                         opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * frac))))
+                        blur_m = settings.envelope_blur * (1 - frac) if stage == "envelope" else 0.0
                         loss, alpha = misfit_and_backward(model, ls.from_differential(opt["u"]),
-                                                          dr.exp(opt_rho["log_albedo"]), stage)
+                                                          dr.exp(opt_rho["log_albedo"]), stage,
+                                                          blur_m * samples_per_metre)
                         opt.step()
                         if fit_albedo:
                             opt_rho.step()
                         history.append({"step": step, "stage": stage, "loss": loss,
-                                        "alpha": alpha,
+                                        "alpha": alpha, "blur_m": blur_m,
                                         "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
                                         "seconds": time.perf_counter() - t0})
                         step += 1

@@ -28,6 +28,9 @@ OPTION_HELP = {
     "fit_albedo": "fit the object's albedo relative to the ground's",
     "oversample": "histogram bins per sample (default: the dataset's)",
     "seed": "order of the batches and the renderer's random numbers",
+    "envelope_blur": "coarse to fine: smooth both envelopes by a Gaussian of this sigma (m of "
+                     "one-way range) at the envelope stage's first step, shrinking to 0 at its last",
+    "uniform_adam": "one Adam scale for all vertices (UniformAdam); --no-uniform-adam: per coordinate",
     "support_steps": "steps of the support stage (per-patch albedo fit, then unsupported patches "
                      "removed) before the geometry stages; 0: none",
     "patch_size": "support stage: patch size (m)",
