@@ -303,7 +303,8 @@ def test_frozen_presets_are_every_entry_points_default():
     assert set(solver.PRESETS["gd"]) <= fields and set(solver.PRESETS["nbp"]) <= fields
     # both export the solid occupancy (recon.solid), each with its measured threshold
     assert solver.PRESETS["gd"]["output"] == solver.PRESETS["nbp"]["output"] == "solid"
-    assert (solver.PRESETS["gd"]["solid_threshold"], solver.PRESETS["nbp"]["solid_threshold"]) == (0.4, 0.3)
+    assert (solver.PRESETS["gd"]["solid_threshold"], solver.PRESETS["nbp"]["solid_threshold"]) == (0.5, 0.3)
+    assert solver.PRESETS["gd"]["solid_hidden"] == solver.PRESETS["nbp"]["solid_hidden"] == 256
 
 
 def test_solid_output_is_the_solid_of_the_same_run(point_ds):
@@ -315,7 +316,10 @@ def test_solid_output_is_the_solid_of_the_same_run(point_ds):
     field = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, **small)
     out = gd.solve(point_ds, g, iterations=6, seed=1, progress=False,
                    **dict(small, output="solid", solid_threshold=0.3, solid_close=0))
-    expected = solid.solidify(field.volume, threshold=0.3, min_fraction=0.1, close=0, floor=True)
+    # step 5 (the preset's solid_hidden) from the scan's sensor positions, the tx–rx midpoints
+    expected = solid.solidify(field.volume, threshold=0.3, min_fraction=0.1, close=0, floor=True,
+                              hidden=256, sensors=0.5 * (point_ds.tx + point_ds.rx),
+                              bounds=g.bounds)
     assert 0 < expected.sum() < expected.size
     np.testing.assert_array_equal(out.volume, expected.astype(np.complex64))
     assert out.params["solid_voxels"] == int(expected.sum())

@@ -59,11 +59,11 @@ class SolverSettings(NetworkSettings):
     scattering: str = "isotropic"
     # the exported volume (both representations): the fitted field, or its solid (recon.solid)
     output: str = "solid"
-    solid_threshold: float = 0.4
+    solid_threshold: float = 0.5
     solid_min_fraction: float = 0.1
     solid_close: int = 1
     solid_ground: bool = True
-    solid_hidden: int = 0
+    solid_hidden: int = 256
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -203,14 +203,15 @@ NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
 # the paper's code, §4.8 of the method description).
 # The exported volume of both frozen presets: the solid occupancy (recon.solid), with a
 # threshold per representation (docs/reconstruction.md, "Solid output").
-SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=1, solid_ground=True)
+SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=1, solid_ground=True,
+             solid_hidden=256)
 
 PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
                pings_per_iteration=5, pings_per_chunk=0, bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
-               reg_start=200, **SOLID, solid_threshold=0.4),
+               reg_start=200, **SOLID, solid_threshold=0.5),
     "nbp": dict(NETWORK_DEFAULTS, iterations=1000, pings_per_iteration=5, pings_per_chunk=5,
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
                 hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
