@@ -7,7 +7,8 @@ backprojection scaled by its least-squares factor through the linear model, a le
 relative to that voxel scale decaying from 2e-2 to 2e-3, the linear model (no Lambertian
 factor, no occlusion) with sparsity 2 in energy units from step 200; 5 pings × 110 bins ×
 2000 rays per step. The exported volume is the solid occupancy of the fitted voxels
-(:mod:`recon.solid`, threshold 0.4; ``output='field'`` exports the voxels themselves).
+(:mod:`recon.solid`, threshold 0.5, hidden voxels filled; ``output='field'`` exports the
+voxels themselves).
 
 Grid mapping (a quirk of the reference fixed): the optimised voxels are exactly the
 :class:`~recon.grid.Grid` centres, trilinear in between and zero outside, so GD and BP

@@ -7,7 +7,8 @@
 CPU (12 hash levels, a 32-wide MLP with 1 hidden layer, 5 pings × 64 bins × 600 rays per
 step; the same sizes as ``preset='cpu'``); ``preset='reference'`` has the reference's sizes
 (14 levels, 128 × 3, 200 bins, 4777 rays) for a GPU variant. The frozen preset exports the
-solid occupancy of the field (:mod:`recon.solid`, threshold 0.3: 1 inside, 0 outside);
+solid occupancy of the field (:mod:`recon.solid`, threshold 0.3, hidden voxels filled: 1
+inside, 0 outside);
 ``output='field'`` exports the complex field itself (docs/reconstruction.md, "Solid output").
 """
 from __future__ import annotations
