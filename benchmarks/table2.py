@@ -103,6 +103,11 @@ class Settings:
     'inr': the paper's neural deconvolution, about 0.1 s per ping on 2 CPU cores).
     ``nbp_warm_start_iterations``: the NBP network's fit to BP before its iterations (None:
     the preset's; the quick size uses 5, where the preset's 300 cost most of the CI run).
+    ``surface_spacing``: the simulator's surface-strata spacing (m; None = its default, 8 mm;
+    the quick size uses 16 mm: a quarter less simulation, MC SNR 35 instead of 38 dB).
+    ``figure_resolution`` / ``figure_dpi``: the render size and dpi of ``table2.png``.
+    ``solver_output``: what GD and NBP export ('field': the fitted field, e.g. to apply another
+    solid extraction post hoc; 'solid'; None: their preset's).
     """
     angle_step: int
     height_step: int
@@ -117,6 +122,10 @@ class Settings:
     threshold_sweep: bool = True
     deconvolution: str = "wiener"     # 'wiener' or 'inr' (recon.deconvolution) for GD and NBP
     nbp_warm_start_iterations: int | None = None   # None: the nbp preset's (its BP warm start)
+    surface_spacing: float | None = None   # simulator's surface strata (m); None: its default
+    solver_output: str | None = None  # GD/NBP 'output' ('field' or 'solid'); None: the preset's
+    figure_resolution: int = 160      # table2.png: render size (pixels) and dpi
+    figure_dpi: int = 100
 
     @property
     def n_poses(self) -> int:
@@ -131,9 +140,11 @@ class Settings:
         """Digest of what the simulation depends on only (poses, fidelity, the module-level
         simulation constants): the dataset's file name. Solver, grid and evaluation settings
         never re-simulate."""
-        key = json.dumps({"angle_step": self.angle_step, "height_step": self.height_step,
-                          "paths_per_pose": self.paths_per_pose, "simulation": SIMULATION,
-                          "pulses": PULSES}, sort_keys=True, default=str)
+        key = {"angle_step": self.angle_step, "height_step": self.height_step,
+               "paths_per_pose": self.paths_per_pose, "simulation": SIMULATION, "pulses": PULSES}
+        if self.surface_spacing is not None:      # (absent: the digests of earlier scans hold)
+            key["surface_spacing"] = self.surface_spacing
+        key = json.dumps(key, sort_keys=True, default=str)
         return identity.digest(key, length=8)
 
     def digest(self) -> str:
@@ -151,7 +162,8 @@ SIZES = {
     "quick": Settings(angle_step=20, height_step=15, paths_per_pose=300, shape=(25, 25, 19),
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
                       view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False,
-                      nbp_warm_start_iterations=5),
+                      nbp_warm_start_iterations=5, surface_spacing=0.016,
+                      figure_resolution=48, figure_dpi=50),
 }
 
 
@@ -178,12 +190,14 @@ class Method:
 METHODS = (
     Method("bp", "Backprojection"),
     Method("gd", "Gradient Descent",
-           lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"]}, True),
+           lambda s: {"iterations": s.gd_iterations, "seed": SIMULATION["seed"],
+                      **({} if s.solver_output is None else {"output": s.solver_output})}, True),
     Method("pfa", "PFA"),
     Method("nbp", "Neural BP (Ours)",
            lambda s: {"iterations": s.nbp_iterations, "seed": SIMULATION["seed"],
                       **({} if s.nbp_warm_start_iterations is None else
-                         {"warm_start_iterations": s.nbp_warm_start_iterations})}, True),
+                         {"warm_start_iterations": s.nbp_warm_start_iterations}),
+                      **({} if s.solver_output is None else {"output": s.solver_output})}, True),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
 
@@ -357,6 +371,8 @@ def manifest(cells: list[Cell], settings: Settings, out: Path, source: str = "au
                       for k, v in SIMULATION.items() if v is not None}}
             if settings.paths_per_pose is not None:
                 job["paths_per_pose"] = int(settings.paths_per_pose)
+            if settings.surface_spacing is not None:
+                job["surface_spacing"] = float(settings.surface_spacing)
             job["reconstruct"] = []
             jobs[name] = job
         m = METHOD_BY_KEY[cell.method]
@@ -694,7 +710,7 @@ def write_csv(path: Path, results) -> None:
                         MAIN_BANDWIDTH, ""] + [cell(values.get(k)) for k in CSV_KEYS] + [""])
 
 
-def write_figure(path: Path, results, methods) -> None:
+def write_figure(path: Path, results, methods, resolution: int = 160, dpi: int = 100) -> None:
     """One row per shape: the GT render, then per method its MIP over y and the render of its
     τ surface (the panels of recon.figures, as recon compare draws them)."""
     import matplotlib
@@ -705,7 +721,7 @@ def write_figure(path: Path, results, methods) -> None:
 
     main = main_rows(results)
     shapes = sorted({r["shape"] for r in main})
-    cams = views.Turntable(n_views=8, resolution=160)
+    cams = views.Turntable(n_views=8, resolution=resolution)
     view = 1                                             # azimuth 45°
     n_cols = 1 + 2 * len(methods)
     fig, axs = plt.subplots(len(shapes), n_cols, figsize=(2.3 * n_cols, 2.5 * len(shapes)),
@@ -730,7 +746,7 @@ def write_figure(path: Path, results, methods) -> None:
             figures.render_panel(axs[i, 2 + 2 * j], export.mesh_from_volume(v, b, THRESHOLD), cams,
                                  view, f"IoU {fmt(e.get('iou'), '.3f')}, "
                                        f"C² {fmt(e.get('chamfer_sq'), '.1e')}")
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
 
 
@@ -762,6 +778,8 @@ def parse_args(argv):
     ap.add_argument("--sweep-methods", help="comma list: methods of the SNR/bandwidth rows")
     ap.add_argument("--no-threshold-sweep", action="store_true",
                     help="metrics at τ only (no best-τ sweep of the exact protocol)")
+    ap.add_argument("--solver-output", choices=("field", "solid"),
+                    help="what GD and NBP export (default: their preset's)")
     ap.add_argument("--deconvolution", choices=("wiener", "inr"),
                     help="pulse deconvolution of the GD and NBP cells' data (default wiener)")
     ap.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -782,7 +800,7 @@ def settings_from(args) -> Settings:
     overrides = {k: getattr(args, k) for k in ("angle_step", "height_step", "paths_per_pose",
                                                "gd_iterations", "nbp_iterations", "samples",
                                                "volume_samples", "view_resolution",
-                                               "deconvolution")
+                                               "deconvolution", "solver_output")
                  if getattr(args, k) is not None}
     if args.sweep_methods:
         overrides["sweep_methods"] = tuple(m for m in args.sweep_methods.split(",") if m)
@@ -847,10 +865,18 @@ def main(argv: list[str] | None = None) -> int:
               f"{fmt(x['chamfer_sq'], '.2e')}", flush=True)
     write_markdown(out / "table2.md", results, methods, summary, notes)
     write_csv(out / "table2.csv", results)
-    write_figure(out / "table2.png", results, methods)
+    from recon.evaluation import json_safe
+    previous = out / "table2.json"
+    try:
+        same_cells = json.loads(previous.read_text()).get("cells") == \
+            json.loads(json.dumps(json_safe(results), default=str))
+    except (OSError, ValueError):
+        same_cells = False
+    if not (same_cells and (out / "table2.png").is_file()):   # a resume that changed nothing
+        write_figure(out / "table2.png", results, methods, settings.figure_resolution,
+                     settings.figure_dpi)
     total = time.perf_counter() - t_start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    from recon.evaluation import json_safe
     (out / "table2.json").write_text(json.dumps(json_safe(
         {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
          "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,

@@ -63,7 +63,7 @@ def render_panel(ax, mesh, cams, view: int, title: str = "") -> None:
     """Draw the shaded render of ``mesh`` from turntable view ``view`` of ``cams``
     (:class:`recon.views.Turntable`) on ``ax``, without axes."""
     from . import views
-    shaded_panel(ax, views.render_views(mesh, cams)["shaded"][view], title)
+    shaded_panel(ax, views.render_views(mesh, cams, views=[view])["shaded"][0], title)
 
 
 def shaded_panel(ax, shaded: np.ndarray, title: str = "") -> None:
@@ -113,8 +113,9 @@ def comparison(volumes, gt, *, labels=None, crop=None, threshold: float = export
         mag = export.normalized_magnitude(volume, normalize)
         res = results[i] if results is not None else metrics.evaluate(
             vol.volume, vol.bounds, gt_mesh, threshold=threshold, sweep=None, crop=box)
-        render = views.render_views(export.extract_surface(mag, bounds, threshold), cams)
-        rows.append((labels[i], bounds, mag, res, render["shaded"][view]))
+        render = views.render_views(export.extract_surface(mag, bounds, threshold), cams,
+                                    views=[view])
+        rows.append((labels[i], bounds, mag, res, render["shaded"][0]))
     best = {}
     for key, _, _, larger in HEADLINE:
         vals = [(_value(r[3], key), j) for j, r in enumerate(rows) if _value(r[3], key) is not None]
@@ -124,7 +125,7 @@ def comparison(volumes, gt, *, labels=None, crop=None, threshold: float = export
 
     gt_bounds, gt_mag = rows[0][1], gt_occupancy(gt_mesh, rows[0][1], rows[0][2].shape)
     all_rows = [("ground truth", gt_bounds, gt_mag, None,
-                 views.render_views(gt_mesh, cams)["shaded"][view])] + rows
+                 views.render_views(gt_mesh, cams, views=[view])["shaded"][0])] + rows
     fig, axs = plt.subplots(len(all_rows), 3, figsize=(11.5, 3.0 * len(all_rows)), squeeze=False,
                             constrained_layout=True)
     image = None

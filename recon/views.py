@@ -49,13 +49,14 @@ class Turntable:
     yfov: float = float(np.pi / 3)
     resolution: int = 256
 
-    def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def rays(self, views=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Origins [V*H*W, 3] (on the near plane), unit directions [V*H*W, 3], camera forward
-        axes [V, 3]."""
+        axes [V, 3] of the views ``views`` (indices into the ring; None: all, V = n_views)."""
         n, res = self.n_views, self.resolution
-        az = np.deg2rad(90.0 - np.arange(n) * 360.0 / n)
+        idx = np.arange(n) if views is None else np.atleast_1d(np.asarray(views, dtype=np.int64))
+        az = np.deg2rad(90.0 - idx * 360.0 / n)
         r = np.sqrt(max(self.distance ** 2 - self.elevation ** 2, 0.0))
-        eye = np.stack([r * np.cos(az), r * np.sin(az), np.full(n, self.elevation)], axis=1)
+        eye = np.stack([r * np.cos(az), r * np.sin(az), np.full(len(idx), self.elevation)], axis=1)
         target = np.array([0.0, 0.0, self.look_height])
         forward = target - eye
         forward /= np.linalg.norm(forward, axis=1, keepdims=True)
@@ -73,10 +74,13 @@ class Turntable:
         return o.reshape(-1, 3), d.reshape(-1, 3), forward
 
 
-def render_views(mesh: trimesh.Trimesh, cams: Turntable = Turntable()) -> dict[str, np.ndarray]:
-    """Ray-cast depth and headlight-shaded images of ``mesh`` from every camera of ``cams``:
-    ``{'depth': [V, H, W] float32 (m), 'shaded': [V, H, W] float32 in [0, 1]}``."""
-    shape = (cams.n_views, cams.resolution, cams.resolution)
+def render_views(mesh: trimesh.Trimesh, cams: Turntable = Turntable(),
+                 views=None) -> dict[str, np.ndarray]:
+    """Ray-cast depth and headlight-shaded images of ``mesh`` from the cameras ``views`` of
+    ``cams`` (indices; None: every one): ``{'depth': [V, H, W] float32 (m), 'shaded':
+    [V, H, W] float32 in [0, 1]}``."""
+    n_views = cams.n_views if views is None else len(np.atleast_1d(views))
+    shape = (n_views, cams.resolution, cams.resolution)
     if len(mesh.faces) == 0:
         return {"depth": np.zeros(shape, np.float32), "shaded": np.zeros(shape, np.float32)}
     from sonarsim import runtime
@@ -93,7 +97,7 @@ def render_views(mesh: trimesh.Trimesh, cams: Turntable = Turntable()) -> dict[s
     params.update()
     scene = mi.load_dict({"type": "scene", "mesh": shape_mi})
 
-    o, d, forward = cams.rays()
+    o, d, forward = cams.rays(views)
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
                    mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
     si = scene.ray_intersect(ray)

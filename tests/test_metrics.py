@@ -606,3 +606,18 @@ def test_comparison_rows_show_their_own_volumes_projections_at_the_voxel_edges()
     import matplotlib.pyplot as plt
     plt.close(fig)
     plt.close(flat)
+
+
+def test_render_views_of_chosen_cameras_equal_those_of_the_whole_ring(mi):
+    """render_views(..., views=[i]) renders camera i only, bit-identical to the ring's image i
+    (figures draw one view without rendering the other nine)."""
+    from recon import views
+    cams = views.Turntable(n_views=5, resolution=24)
+    mesh = trimesh.creation.box(extents=[0.1, 0.06, 0.08]).apply_translation([0.01, 0.0, 0.1])
+    ring = views.render_views(mesh, cams)
+    some = views.render_views(mesh, cams, views=[3, 1])
+    for kind in ("depth", "shaded"):
+        assert some[kind].shape == (2, 24, 24)
+        assert np.array_equal(some[kind][0], ring[kind][3])
+        assert np.array_equal(some[kind][1], ring[kind][1])
+    assert not np.array_equal(ring["depth"][3], ring["depth"][1])
