@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 import time
+import types
 import warnings
 
 import pytest
@@ -29,30 +30,33 @@ def _seconds(h, m, s) -> int:
     return 3600 * int(h) + 60 * int(m) + int(s)
 
 
-def test_log_lines_report_done_total_rate_and_eta(caplog):
+def test_log_lines_report_done_total_rate_and_eta(caplog, monkeypatch):
+    """On a clock the test drives (1/64 s a step, a line every 1/16 s; binary fractions, so
+    no rounding), every line's rate is the steps done over the time elapsed: 64 step/s,
+    or 64·n/(n + 1) if the background ticker wrote the line between the clock's step and
+    the bar's update. (On the real clock a loaded machine stretched the first steps: 15
+    step/s with 10 ms sleeps.)"""
+    clock = [1000.0]
+    monkeypatch.setattr(progress, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
     caplog.set_level(logging.INFO, logger=progress.LOGGER_NAME)
-    bar = progress.LogProgress(40, unit="step", desc="stage", interval=0.05)
+    bar = progress.LogProgress(40, unit="step", desc="stage", interval=1 / 16)
     bar.set_postfix(loss="0.5", refresh=False)
-    start = time.monotonic()
     for _ in range(40):
-        time.sleep(0.01)
+        clock[0] += 1 / 64
         bar.update(1)
     bar.close()
-    elapsed = time.monotonic() - start
     lines = [r.getMessage() for r in caplog.records]
     ticks = [LINE.match(line) for line in lines[:-1]]
     assert len(ticks) >= 3 and all(ticks), lines
     for m in ticks:
         n, total, pct, rate = int(m[1]), int(m[2]), int(m[3]), float(m[4])
         assert total == 40 and pct == round(100 * n / 40)
-        # the rate is steps per second of the whole stage so far: 100 steps/s here
-        # (10 ms a step), less whatever the machine adds
-        assert 25 < rate <= 105, lines
+        assert 64 * n / (n + 1) * 0.999 <= rate <= 64 * 1.001, lines
         assert _seconds(*m.groups()[7:10]) == pytest.approx((40 - n) / rate, abs=1.0)
     done = re.match(r"^stage done: 40/40 step in (\d+):(\d\d):(\d\d) \(([0-9.]+) step/s\), "
                     r"loss=0\.5$", lines[-1])
     assert done, lines[-1]
-    assert float(done[4]) == pytest.approx(40 / elapsed, rel=0.2)
+    assert float(done[4]) == pytest.approx(64, rel=1e-3)
 
 
 def test_a_short_stage_prints_nothing(caplog):
