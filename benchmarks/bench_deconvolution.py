@@ -4,9 +4,12 @@ Wiener: seconds per ping on [N, T] waveforms against a straightforward NumPy ver
 (ping by ping, full complex FFTs), whose output it must match. INR: seconds per Adam
 iteration and per ping·iteration for a batch of P pings × T samples, with the default
 network and the reference's (20 levels, 128 × 3 hidden), and peak memory (ru_maxrss of
-a fresh process per configuration).
+a fresh process per configuration). ``--inr-quality``: what cheaper INR settings cost in
+quality — iterations, hash levels, MLP size, and a warm start from the previous batch's
+network — on a reflector train with known positions (median −6 dB mainlobe width, share of
+peaks within one sample of the truth, in-band residual), beside Wiener and the matched filter.
 
-    .venv/bin/python benchmarks/bench_deconvolution.py [--quick]
+    .venv/bin/python benchmarks/bench_deconvolution.py [--quick] [--inr-quality]
 """
 from __future__ import annotations
 
@@ -102,15 +105,98 @@ def bench_inr(pings, samples, warm, iters):
               f"= {300 * t / 60:.1f} min; peak RSS {r['rss_mb']:.0f} MB")
 
 
+def moving_reflectors(n_pings, n_t=400, snr_db=20.0, seed=0):
+    """Five reflectors per ping that move one sample later every 8 pings with slowly varying
+    amplitudes (neighbouring pings alike, as in a scan), the 20 kHz LFM, white noise at
+    ``snr_db``. Returns (noisy [P, T], pulse, truth positions [P, 5])."""
+    from recon import deconvolution as dc
+    from sonarsim import signals
+    rng = np.random.default_rng(seed)
+    p = signals.named_pulse("lfm-20k", signals.AIRSAS_FS)
+    base = np.sort(rng.choice(np.arange(40, n_t - 60, 12), 5, replace=False))
+    amps = rng.uniform(0.4, 1.0, 5)
+    w = np.zeros((n_pings, n_t))
+    truth = np.array([base + i // 8 for i in range(n_pings)])
+    for i in range(n_pings):
+        w[i, truth[i]] = amps * (1 + 0.2 * np.sin(i / 15 + np.arange(5)))
+    noisy, _ = signals.add_noise(dc.convolve(w, p), snr_db, rng)
+    return noisy, p, truth
+
+
+def _echo_quality(sig, s, p, truth):
+    from recon import deconvolution as dc
+    widths, offsets = [], []
+    for i, ks in enumerate(truth):
+        for k in ks:
+            offsets.append(int(np.argmax(np.abs(sig[i, k - 5:k + 6]))) - 5)
+            widths.append(dc.mainlobe_width(sig[i], k))
+    resid = np.linalg.norm(dc.convolve(np.real(sig), p) - s) / np.linalg.norm(s)
+    return float(np.median(widths)), float(np.mean(np.abs(offsets) <= 1)), float(resid)
+
+
+def _fit_batches(s, p, st, warm_iterations=0):
+    """INR batches of ``st.pings_per_inr`` pings as recon.deconvolution.inr fits them (one
+    new network each), or, with ``warm_iterations``, every batch after the first continuing
+    from the previous batch's network for that many iterations. Returns w [N, T]."""
+    from dataclasses import replace
+    from recon import deconvolution as dc
+    scale = float(np.abs(s).max())
+    out, field_ = np.empty_like(s), None
+    for b in range(0, len(s), st.pings_per_inr):
+        rows = slice(b, b + st.pings_per_inr)
+        if warm_iterations and field_ is not None:
+            batch_st = replace(st, iterations=warm_iterations)
+        else:
+            batch_st, field_ = st, dc._Field(st, st.seed + b)
+        out[rows] = dc.inr_batch(s[rows] / scale, p, batch_st, st.seed + b, field=field_)[0] * scale
+    return out
+
+
+def bench_inr_quality(pings_per_inr, n_batches):
+    from recon import deconvolution as dc
+    from sonarsim import signals
+    s, p, truth = moving_reflectors(pings_per_inr * n_batches)
+    mf = signals.matched_filter(s, p, mode="linear")
+    print(f"inr quality: {n_batches} batches x {pings_per_inr} pings x {s.shape[1]} samples, "
+          "5 moving reflectors per ping, 20 dB; median -6 dB width (samples; an ideal spike "
+          "2.41), peaks within 1 sample of the truth, in-band residual; CPU-s per "
+          "sample-iteration")
+    for label, sig in (("matched filter", mf), ("wiener", dc.wiener(s, p)[0])):
+        w, ok, res = _echo_quality(sig, s, p, truth)
+        print(f"  {label:34s} width {w:.2f}  peaks {ok:.0%}  residual {res:.3f}")
+    configs = [("default (300 iterations)", {}, 0), ("150 iterations", {"iterations": 150}, 0),
+               ("100 iterations", {"iterations": 100}, 0), ("60 iterations", {"iterations": 60}, 0),
+               ("10 hash levels, 150 it.", {"hash_levels": 10, "iterations": 150}, 0),
+               ("MLP 16 x 1, 150 it.", {"mlp_width": 16, "mlp_hidden": 1, "iterations": 150}, 0),
+               ("warm start, 60 it. after the 1st", {}, 60),
+               ("warm start, 30 it. after the 1st", {}, 30)]
+    for label, kw, warm in configs:
+        st = dc.INRSettings(pings_per_inr=pings_per_inr, **kw)
+        c0 = time.process_time()
+        w_all = _fit_batches(s, p, st, warm)
+        cpu = time.process_time() - c0
+        iters = st.iterations + (n_batches - 1) * (warm or st.iterations)
+        later = slice(pings_per_inr, None)       # the batches after the first
+        w, ok, res = _echo_quality(dc.analytic(w_all.astype(np.float64))[later], s[later], p,
+                                   truth[later])
+        print(f"  {label:34s} width {w:.2f}  peaks {ok:.0%}  residual {res:.3f}  "
+              f"{cpu / (iters * pings_per_inr * s.shape[1]):.1e} CPU-s", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="small sizes (a few seconds)")
+    ap.add_argument("--inr-quality", action="store_true",
+                    help="only the INR quality/cost sweep (about 2 CPU-min)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(_inr_child(json.loads(args.child))))
         return 0
     print("machine: 2 shared cores, loaded by other work; timings are noisy (medians)")
+    if args.inr_quality:
+        bench_inr_quality(24, 2 if args.quick else 3)
+        return 0
     if args.quick:
         bench_wiener(360, 1000, 3)
         bench_inr(36, 1000, 2, 3)

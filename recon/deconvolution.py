@@ -4,7 +4,7 @@ Two methods turn the real waveforms s [N, T] of a dataset into deconvolved *anal
 signals (complex64 [N, T]) that reconstruction solvers use directly, without a matched
 filter (``waveform_kind = 'deconvolved_analytic'``, see docs/formats.md):
 
-* ``'wiener'``: frequency-domain Wiener deconvolution W = S·P*/(|P|² + λ) with λ = σ²/σ_w²
+* ``'wiener'`` (the default): frequency-domain Wiener deconvolution W = S·P*/(|P|² + λ) with λ = σ²/σ_w²
   estimated from the data (white-noise variance σ² from the spectrum outside the pulse band,
   reflectivity variance σ_w² from the spectrum inside it); linear (zero-padded), so nothing
   wraps around. A linear method cannot reach beyond the pulse band: its resolution is the
@@ -15,7 +15,11 @@ filter (``waveform_kind = 'deconvolved_analytic'``, see docs/formats.md):
   real reflectivity w; the estimated waveform is ŝ = Re Σ_k w_k·p̂(t − k/fs) = (w ∗ p)(t)
   (p̂ the analytic pulse, p = Re p̂); loss = MSE(ŝ, s/max|s|) + λ_sp·mean|w|
   + λ_ph·(mean|Δ cos φ| + mean|Δ sin φ|) with φ = angle(analytic(ŝ)); Adam, full batch.
-  The sparsity prior lets it resolve reflectors closer than the pulse bandwidth allows.
+  The sparsity prior lets it resolve reflectors closer than the pulse bandwidth allows;
+  on extended surfaces it breaks each return into spikes, and NBP on INR-deconvolved
+  Table-2 scans is no better than on Wiener's (the cube's much worse), at minutes instead
+  of seconds per 1 000 pings — hence Wiener is the default (docs/reconstruction.md, "Which
+  deconvolution").
 
 Either way the output sample k is the reflectivity of an echo whose pulse starts at sample k,
 the convention of the matched filter, so both kinds of dataset share the time axis
@@ -453,15 +457,17 @@ def _coords(m, n_pings: int, n_t: int):
 
 
 def inr_batch(target: np.ndarray, pulse: np.ndarray, st: INRSettings, seed: int,
-              on_iteration=None) -> tuple[np.ndarray, list[float]]:
+              on_iteration=None, field: _Field | None = None) -> tuple[np.ndarray, list[float]]:
     """Fit one INR to ``target`` [P, T] (normalised); returns (w [P, T] float32, losses).
 
     The data term is restricted to the pulse band (``st.band_db``): target and pulse are
     band-passed alike, so energy the pulse cannot have produced (e.g. the strong
-    low-frequency content of real recordings) does not pull the fit."""
+    low-frequency content of real recordings) does not pull the fit. ``field``: continue
+    training that network (a warm start; benchmarks/bench_deconvolution.py measures it)
+    instead of a new one seeded ``seed``."""
     band = pulse_band(pulse, target.shape[1], st.band_db)
     target = bandpass(target, band, pulse.size)
-    field_ = _Field(st, seed)
+    field_ = field if field is not None else _Field(st, seed)
     dr, m = field_.dr, field_.m
     coords = _coords(m, *target.shape)
     losses = []
@@ -555,7 +561,7 @@ def check_inr_time(n_pings: int, n_samples: int, settings: INRSettings,
     return hours
 
 
-def deconvolve(dataset, method: str = "inr", *, wiener_lambda: float | None = None,
+def deconvolve(dataset, method: str = "wiener", *, wiener_lambda: float | None = None,
                inr_settings: INRSettings | None = None, progress: bool = True,
                max_hours: float | None = None):
     """A new :class:`~sonarsim.dataset.SonarDataset` whose waveforms are the deconvolved

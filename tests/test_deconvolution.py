@@ -249,8 +249,8 @@ def test_cli_bad_input_gives_one_line_errors(tmp_path, capsys):
 
 
 def test_cli_options_are_the_inr_settings():
-    """Every INRSettings field is a `recon deconvolve` option with its default (derived, not
-    declared by hand)."""
+    """Every INRSettings field is a `recon deconvolve` option (derived, not declared by hand),
+    None unless given, its help naming the INRSettings default."""
     import argparse
     import dataclasses
     from recon.commands import deconvolve as cmd
@@ -258,10 +258,32 @@ def test_cli_options_are_the_inr_settings():
     cmd.add_arguments(parser)
     args = parser.parse_args(["d.h5", "--out", "o.h5", "--hash-levels", "3",
                               "--hash-level-scale", "2"])
+    assert cmd.inr_settings_given(args) == {"hash_levels": 3, "hash_level_scale": 2.0}
     d = dc.INRSettings()
+    helps = {a.dest: a.help for a in parser._actions}
     for f in dataclasses.fields(dc.INRSettings):
-        expected = {"hash_levels": 3, "hash_level_scale": 2.0}.get(f.name, getattr(d, f.name))
-        assert getattr(args, f.name) == expected, f.name
+        assert f"(default {getattr(d, f.name)})" in helps[f.name], f.name
+
+
+def test_cli_default_method_is_wiener_and_the_other_methods_settings_are_refused(tmp_path,
+                                                                                capsys):
+    """Wiener is the default (docs/reconstruction.md: NBP on Wiener- vs INR-deconvolved
+    scans); INR settings select the INR; a setting of the method not run is refused in one
+    line, not silently ignored."""
+    _, path = _point_dataset(tmp_path, 4)
+    out = tmp_path / "pd.h5"
+    rc, err = _recon(capsys, "deconvolve", path, "--out", out)
+    assert rc == 0, err
+    assert SonarDataset.read(out).meta["deconvolution_method"] == "wiener"
+    for args, text in [(("--method", "wiener", "--iterations", "5", "--mlp-width", "8"),
+                        "INR settings (--mlp-width, --iterations) apply to --method inr only"),
+                       (("--method", "inr", "--wiener-lambda", "1"),
+                        "--wiener-lambda applies to --method wiener only"),
+                       (("--iterations", "5", "--wiener-lambda", "1"),
+                        "--wiener-lambda applies to --method wiener only")]:
+        rc, err = _recon(capsys, "deconvolve", path, "--out", tmp_path / "x.h5", *args)
+        assert rc == 2 and text in err and len(err.strip().splitlines()) == 1, (args, err)
+    assert not (tmp_path / "x.h5").exists()
 
 
 def test_inr_network_settings_are_the_fields_network_settings():
@@ -328,7 +350,8 @@ def test_inr_cost_is_estimated_and_a_long_run_refused_before_any_work(tmp_path, 
     assert dc.INRSettings(mlp_width=128, mlp_hidden=3).cpu_seconds_estimate(360, 718) > 3 * one
     _, path = _point_dataset(tmp_path, 12)
     out = tmp_path / "pd.h5"
-    rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--max-hours", "1e-9")
+    rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--method", "inr",
+                     "--max-hours", "1e-9")
     assert rc == 2 and "estimated" in err and "--method wiener" in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
     rc, err = _recon(capsys, "deconvolve", path, "--out", out, "--iterations", "2",

@@ -18,9 +18,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = INRSettings()
     parser.add_argument("dataset", type=Path, help="sonar dataset (.h5) with real waveforms")
     parser.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
-    parser.add_argument("--method", choices=("inr", "wiener"), default="inr",
-                        help="inr: the paper's neural deconvolution (default); wiener: "
-                             "frequency-domain Wiener filter with λ from the noise level")
+    parser.add_argument("--method", choices=("wiener", "inr"), default=None,
+                        help="wiener (default): frequency-domain Wiener filter with λ from the "
+                             "noise level, seconds per scan; inr: the paper's neural "
+                             "deconvolution, minutes per 1 000 pings (giving any INR setting "
+                             "selects it). Why Wiener is the default: docs/reconstruction.md")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="deconvolve only this slice of the pings")
     parser.add_argument("--wiener-lambda", type=float, default=None, metavar="L",
@@ -29,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("INR settings")
     for f in dataclasses.fields(INRSettings):
         kind = int if "int" in str(f.type) else float
-        g.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=getattr(d, f.name),
+        g.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=None,
                        help=f"{INR_HELP[f.name]} (default {getattr(d, f.name)})")
     for old in RENAMED:                 # the old names: one line naming the new one
         g.add_argument("--" + old.replace("_", "-"), action=_Renamed, help=argparse.SUPPRESS)
@@ -52,15 +54,36 @@ class _Renamed(argparse.Action):
         parser.error(renamed_setting(option_string.lstrip("-").replace("-", "_"), option=True))
 
 
+def inr_settings_given(args: argparse.Namespace) -> dict:
+    """The INR settings given on the command line ({field: value}; the others are None)."""
+    from ..deconvolution import INRSettings
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(INRSettings)
+            if getattr(args, f.name) is not None}
+
+
+def chosen_method(args: argparse.Namespace, given: dict) -> str:
+    """``--method``, else 'inr' when INR settings are given, else 'wiener' (the default);
+    settings of the other method are refused in one line (InputError), not ignored."""
+    from sonarsim.errors import InputError
+    method = args.method or ("inr" if given else "wiener")
+    if method == "wiener" and given:
+        names = ", ".join("--" + k.replace("_", "-") for k in given)
+        raise InputError(f"INR settings ({names}) apply to --method inr only")
+    if method == "inr" and args.wiener_lambda is not None:
+        raise InputError("--wiener-lambda applies to --method wiener only")
+    return method
+
+
 def run(args: argparse.Namespace) -> int:
     from sonarsim.dataset import SonarDataset
     from sonarsim.errors import InputError
     from .. import deconvolution
     from . import _common
-    settings = deconvolution.INRSettings(**{f.name: getattr(args, f.name)
-                                            for f in dataclasses.fields(deconvolution.INRSettings)})
-    if args.method == "inr":
+    given = inr_settings_given(args)
+    settings = deconvolution.INRSettings(**given)
+    if given:                   # checked first: a bad value is named before a method clash
         settings.validate()
+    method = chosen_method(args, given)
     if not (args.max_hours > 0 and math.isfinite(args.max_hours)):
         raise InputError(f"--max-hours: must be a positive number of hours, got {args.max_hours!r}")
     ds = SonarDataset.read(args.dataset, transients=False)
@@ -70,15 +93,15 @@ def run(args: argparse.Namespace) -> int:
     from sonarsim.atomic import check_free_space
     # the output: the dataset with complex64 instead of float32 waveforms
     check_free_space(args.out, ds.nbytes() + ds.waveforms.size * 4, "the deconvolved dataset")
-    out = deconvolution.deconvolve(ds, args.method, wiener_lambda=args.wiener_lambda,
+    out = deconvolution.deconvolve(ds, method, wiener_lambda=args.wiener_lambda,
                                    inr_settings=settings, progress=not args.no_progress,
                                    max_hours=args.max_hours)
     out.meta["deconvolution_settings"]["dataset"] = str(args.dataset)
     out.write(args.out)
     info = out.meta["deconvolution_settings"]
     tail = (f"loss {info['loss_first'][0]:.4g} -> {info['loss_last'][0]:.4g} (first batch), "
-            f"{info['seconds']:.1f} s" if args.method == "inr"
+            f"{info['seconds']:.1f} s" if method == "inr"
             else f"lambda {info['lambda']:.4g}")
-    print(f"wrote {args.out}: {args.method} deconvolution of {out.n_pings} pings x "
+    print(f"wrote {args.out}: {method} deconvolution of {out.n_pings} pings x "
           f"{out.n_samples} samples; {tail}")
     return 0
