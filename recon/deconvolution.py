@@ -4,11 +4,11 @@ Two methods turn the real waveforms s [N, T] of a dataset into deconvolved *anal
 signals (complex64 [N, T]) that reconstruction solvers use directly, without a matched
 filter (``waveform_kind = 'deconvolved_analytic'``, see docs/formats.md):
 
-* ``'wiener'`` (the default): frequency-domain Wiener deconvolution W = S·P*/(|P|² + λ) with λ = σ²/σ_w²
-  estimated from the data (white-noise variance σ² from the spectrum outside the pulse band,
-  reflectivity variance σ_w² from the spectrum inside it); linear (zero-padded), so nothing
-  wraps around. A linear method cannot reach beyond the pulse band: its resolution is the
-  matched filter's.
+* ``'wiener'`` (the default): frequency-domain Wiener deconvolution W = S·P*/(|P|² + λ)
+  with λ = σ²/σ_w² estimated from the data (white-noise variance σ² from the spectrum
+  outside the pulse band, reflectivity variance σ_w² from the spectrum inside it); linear
+  (zero-padded), so nothing wraps around. A linear method cannot reach beyond the pulse
+  band: its resolution is the matched filter's.
 * ``'inr'``: the reference's neural deconvolution (reference code
   ``inr_reconstruction/deconvolve_measurements.py``): per batch of pings, a 2-D hash grid
   + MLP over (range, ping) ∈ [0, 1]² (:mod:`drjit.nn`, tensor/GEMM mode, float32) outputs a

@@ -1,4 +1,5 @@
-"""``recon deconvolve D.h5 --out D_pd.h5``: pulse deconvolution of a dataset (INR or Wiener)."""
+"""``recon deconvolve D.h5 --out D_pd.h5``: pulse deconvolution of a dataset (Wiener by
+default, or the INR)."""
 from __future__ import annotations
 
 import argparse
@@ -9,8 +10,8 @@ from pathlib import Path
 
 DEFAULT_MAX_HOURS = 1.0
 
-HELP = ("Pulse-deconvolve a sonar dataset (neural INR or Wiener); writes a dataset of "
-        "deconvolved analytic signals that every solver reads.")
+HELP = ("Pulse-deconvolve a sonar dataset (Wiener by default, or the neural INR); writes a "
+        "dataset of deconvolved analytic signals that every solver reads.")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
