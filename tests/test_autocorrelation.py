@@ -5,7 +5,8 @@ index arrays)."""
 import numpy as np
 
 from recon._jit import jit
-from recon.solver.autocorrelation import aligned_upload, convolve_rendered, expand_bins
+from recon._jit import aligned_upload
+from recon.solver.autocorrelation import convolve_rendered, expand_bins
 
 TAPS, N_T = 6, 200
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._jit import aligned_upload
+
 
 def pulse_autocorrelation(dataset, taps: int) -> np.ndarray:
     """The matched filter's response to the dataset's own pulse at lags −taps…taps samples
@@ -35,24 +37,6 @@ def expand_bins(bins: np.ndarray, taps: int, n_t: int):
         render[i, len(u):] = u[-1]
         pos[i] = np.searchsorted(u, want[i]) + i * length
     return render, pos
-
-
-def aligned_upload(kind, values: np.ndarray, alignment: int = 64):
-    """``values`` (any shape, flattened) as the Dr.Jit array type ``kind``, read from a host
-    buffer whose start is aligned to ``alignment`` bytes.
-
-    Dr.Jit's LLVM backend maps a NumPy buffer without copying it and writes the buffer's
-    alignment into the kernel (vector loads ``align 32`` when the address allows it, ``align 1``
-    otherwise), so the kernel's hash depends on where the allocator happened to put the array.
-    A kernel that reads n freshly allocated NumPy arrays has up to 2ⁿ variants, and one that is
-    rebuilt every iteration from new arrays compiles again nearly every time. An aligned buffer
-    gives one variant."""
-    flat = np.ascontiguousarray(values).ravel()
-    raw = np.empty(flat.nbytes + alignment, dtype=np.uint8)
-    start = -raw.ctypes.data % alignment
-    host = raw[start:start + flat.nbytes].view(flat.dtype)
-    host[:] = flat
-    return kind(host)
 
 
 def convolve_rendered(m, y_re, y_im, pos: np.ndarray, acf: np.ndarray):
