@@ -32,7 +32,6 @@ import time
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
-import scipy.fft
 
 from sonarsim.errors import InputError
 
@@ -47,8 +46,15 @@ _ROWS_PER_BLOCK = 4096
 
 # ---- shared FFT helpers --------------------------------------------------------------------
 
+def _fft():
+    """scipy.fft, imported on first use: importing it costs ~0.2 CPU-s of every ``recon``
+    command's start-up, and only a deconvolution needs it."""
+    import scipy.fft
+    return scipy.fft
+
+
 def _n_fft(n_t: int, n_p: int) -> int:
-    return scipy.fft.next_fast_len(n_t + n_p - 1, real=True)
+    return _fft().next_fast_len(n_t + n_p - 1, real=True)
 
 
 def _analytic_weights(n: int) -> np.ndarray:
@@ -64,13 +70,13 @@ def _half_to_analytic(half: np.ndarray, n: int, n_keep: int) -> np.ndarray:
     """Analytic signal [.., n_keep] from the rfft ``half`` [.., n//2+1] of a real signal."""
     full = np.zeros(half.shape[:-1] + (n,), dtype=half.dtype)
     full[..., :half.shape[-1]] = half * _analytic_weights(n).astype(half.real.dtype)
-    return scipy.fft.ifft(full, axis=-1, workers=-1)[..., :n_keep]
+    return _fft().ifft(full, axis=-1, workers=-1)[..., :n_keep]
 
 
 def analytic(x: np.ndarray) -> np.ndarray:
     """Analytic signal of real rows x [.., T] (periodic, like scipy.signal.hilbert)."""
     n = x.shape[-1]
-    return _half_to_analytic(scipy.fft.rfft(x, axis=-1), n, n)
+    return _half_to_analytic(_fft().rfft(x, axis=-1), n, n)
 
 
 def _check_inputs(waveforms, pulse) -> tuple[np.ndarray, np.ndarray]:
@@ -103,12 +109,12 @@ def noise_and_signal_power(waveforms, pulse) -> tuple[float, float]:
     s, p = _check_inputs(waveforms, pulse)
     n_t = s.shape[1]
     n = _n_fft(n_t, p.size)
-    p2 = np.abs(scipy.fft.rfft(p, n=n)) ** 2
+    p2 = np.abs(_fft().rfft(p, n=n)) ** 2
     out_band = p2 < p2.max() * 10 ** (OUT_OF_BAND_DB / 10)
     in_band = p2 >= p2.max() * 10 ** (IN_BAND_DB / 10)
     spec = np.zeros(p2.size)
     for b in range(0, s.shape[0], _ROWS_PER_BLOCK):
-        block = scipy.fft.rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1)
+        block = _fft().rfft(s[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1)
         spec += (block.real ** 2 + block.imag ** 2).sum(0, dtype=np.float64)
     spec /= s.shape[0] * n_t
     if out_band.sum() >= max(4, 0.05 * p2.size):
@@ -144,7 +150,7 @@ def wiener(waveforms, pulse, lam: float | None = None) -> tuple[np.ndarray, dict
             raise InputError(f"wiener lambda: must be positive and finite, got {lam}")
         info["lambda_source"] = "given"
     n = _n_fft(n_t, p.size)
-    P = scipy.fft.rfft(p, n=n)
+    P = _fft().rfft(p, n=n)
     if not lam > 1e-12 * float(np.max(np.abs(P) ** 2)):
         lam = 1e-12 * float(np.max(np.abs(P) ** 2))
     H = np.conj(P) / (np.abs(P) ** 2 + lam)
@@ -152,7 +158,7 @@ def wiener(waveforms, pulse, lam: float | None = None) -> tuple[np.ndarray, dict
     # single precision (the output is complex64) and all threads
     s32, H32 = s.astype(np.float32, copy=False), H.astype(np.complex64)
     for b in range(0, n_pings, _ROWS_PER_BLOCK):
-        half = scipy.fft.rfft(s32[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1) * H32
+        half = _fft().rfft(s32[b:b + _ROWS_PER_BLOCK], n=n, axis=-1, workers=-1) * H32
         out[b:b + _ROWS_PER_BLOCK] = _half_to_analytic(half, n, n_t)
     info["lambda"] = float(lam)
     info["lambda_relative_to_peak_P2"] = float(lam / np.max(np.abs(P) ** 2))
@@ -167,7 +173,7 @@ def pulse_band(pulse: np.ndarray, n_t: int, band_db: float) -> np.ndarray | None
     infinite (the full band)."""
     if math.isinf(band_db):
         return None
-    p2 = np.abs(scipy.fft.rfft(pulse, n=_n_fft(n_t, pulse.size))) ** 2
+    p2 = np.abs(_fft().rfft(pulse, n=_n_fft(n_t, pulse.size))) ** 2
     return (p2 >= p2.max() * 10 ** (-band_db / 10)).astype(np.float64)
 
 
@@ -178,7 +184,7 @@ def bandpass(x: np.ndarray, band: np.ndarray | None, n_p: int) -> np.ndarray:
         return x
     n_t = x.shape[-1]
     n = _n_fft(n_t, n_p)
-    return scipy.fft.irfft(scipy.fft.rfft(x, n=n, axis=-1) * band, n=n, axis=-1)[..., :n_t]
+    return _fft().irfft(_fft().rfft(x, n=n, axis=-1) * band, n=n, axis=-1)[..., :n_t]
 
 
 def convolve(w: np.ndarray, pulse: np.ndarray, band: np.ndarray | None = None) -> np.ndarray:
@@ -186,16 +192,16 @@ def convolve(w: np.ndarray, pulse: np.ndarray, band: np.ndarray | None = None) -
     with ``band`` (:func:`pulse_band`) the pulse is band-passed first."""
     n_t = w.shape[-1]
     n = _n_fft(n_t, pulse.size)
-    spec = scipy.fft.rfft(pulse, n=n) * (1.0 if band is None else band)
-    return scipy.fft.irfft(scipy.fft.rfft(w, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
+    spec = _fft().rfft(pulse, n=n) * (1.0 if band is None else band)
+    return _fft().irfft(_fft().rfft(w, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
 
 
 def correlate(g: np.ndarray, pulse: np.ndarray, band: np.ndarray | None = None) -> np.ndarray:
     """The adjoint of :func:`convolve`: (Σ_j p[j]·g[k + j]) for k < T."""
     n_t = g.shape[-1]
     n = _n_fft(n_t, pulse.size)
-    spec = np.conj(scipy.fft.rfft(pulse, n=n)) * (1.0 if band is None else band)
-    return scipy.fft.irfft(scipy.fft.rfft(g, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
+    spec = np.conj(_fft().rfft(pulse, n=n)) * (1.0 if band is None else band)
+    return _fft().irfft(_fft().rfft(g, n=n, axis=-1) * spec, n=n, axis=-1)[..., :n_t]
 
 
 def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: float,
@@ -235,13 +241,13 @@ def inr_loss(w: np.ndarray, target: np.ndarray, pulse: np.ndarray, sparsity: flo
         g_a = (g_u - u * np.real(np.conj(u) * g_u)) / mag
         # a = analytic(ŝ) is self-adjoint as a complex operator: dL/dŝ = Re analytic(g_a).
         n_t = g_a.shape[-1]
-        full = scipy.fft.fft(g_a, axis=-1)
+        full = _fft().fft(g_a, axis=-1)
         h = np.zeros(n_t)
         h[0] = 1.0
         h[1:(n_t + 1) // 2] = 2.0
         if n_t % 2 == 0:
             h[n_t // 2] = 1.0
-        g_s = g_s + phase * np.real(scipy.fft.ifft(full * h, axis=-1))
+        g_s = g_s + phase * np.real(_fft().ifft(full * h, axis=-1))
     g_w = correlate(g_s, pulse, band) + sparsity * np.sign(w) / m
     loss = mse + sparsity * sp + phase * ph
     return loss, {"mse": mse, "sparsity": sp, "phase": ph}, g_w

@@ -24,14 +24,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from sonarsim.atomic import atomic_path
 from sonarsim.dataset.volume import voxel_axes as volume_voxel_axes
 from sonarsim.dataset.volume import voxel_spacing as _spacing
 from sonarsim.errors import InputError
+
+if TYPE_CHECKING:     # trimesh (networkx, scipy.spatial) is imported where a mesh is made:
+    import trimesh    # it is most of a recon command's start-up (``recon --help``)
 
 NORMALIZATIONS = ("minmax", "max")
 DEFAULT_THRESHOLD = 0.2
@@ -143,6 +146,7 @@ def extract_surface(magnitude: np.ndarray, bounds, threshold: float = DEFAULT_TH
     Faces are wound so that normals point out of the region above the threshold. A volume
     with nothing above the threshold gives an empty mesh (0 vertices, 0 faces).
     """
+    import trimesh
     from skimage.measure import marching_cubes
 
     t = check_threshold(threshold)

@@ -121,3 +121,21 @@ def test_cli_help(prog):
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "usage" in r.stdout.lower()
+
+
+def test_export_and_deconvolution_import_no_heavy_libraries():
+    """recon.export and recon.deconvolution import trimesh (networkx, scipy.spatial) and
+    scipy.fft where a mesh or an FFT is made, not at import: every ``recon`` command imports
+    them to build its parser, and these imports were most of its start-up CPU."""
+    heavy = ("trimesh", "networkx", "scipy.spatial", "scipy.fft")
+    r = _run("import sys, recon.export, recon.deconvolution\n"
+             f"print(sorted(m for m in {heavy!r} if m in sys.modules))")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
+    r = _run("import sys, numpy as np\n"
+             "from recon import deconvolution, export\n"
+             "mesh = export.extract_surface(np.pad(np.ones((2, 2, 2)), 1), [[0, 1]] * 3, 0.5)\n"
+             "deconvolution.analytic(np.ones(8))\n"
+             f"print(sorted(m for m in {heavy!r} if m in sys.modules), len(mesh.faces) > 0)")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == f"{sorted(heavy)!r} True"
