@@ -197,26 +197,35 @@ def _set_nan(f):
     f["waveforms"][1, 3] = np.nan
 
 
-@pytest.mark.parametrize("edit, problem", [
-    (lambda f: f.attrs.__setitem__("fs", 0.0), "fs must be positive and finite, got 0.0"),
-    (lambda f: f.attrs.__setitem__("sound_speed", 0.0), "sound_speed must be positive"),
-    (_set_nan, "dataset 'waveforms' contains 1 NaN or inf values (first in ping 1)"),
-    (lambda f: f["pulse"].__setitem__(slice(None), 0.0), "dataset 'pulse' is all zero"),
-    (lambda f: f["pings/boresight"].__setitem__(0, [0.0, 0.0, 0.0]), "zero-length direction"),
-    (lambda f: f.__delitem__("pulse"), "missing dataset 'pulse'"),
+@pytest.mark.parametrize("edit, problem, refusal", [
+    (lambda f: f.attrs.__setitem__("fs", 0.0), "fs must be positive and finite, got 0.0",
+     "fs must be positive"),
+    (lambda f: f.attrs.__setitem__("sound_speed", 0.0), "sound_speed must be positive",
+     "sound_speed must be positive"),
+    (_set_nan, "dataset 'waveforms' contains 1 NaN or inf values (first in ping 1)",
+     "'waveforms' contains NaN or inf"),
+    (lambda f: f["pulse"].__setitem__(slice(None), 0.0), "dataset 'pulse' is all zero",
+     "pulse is all zero"),
+    (lambda f: f["pings/boresight"].__setitem__(0, [0.0, 0.0, 0.0]), "zero-length direction",
+     "zero-length direction"),
+    (lambda f: f.__delitem__("pulse"), "missing dataset 'pulse'", "missing dataset 'pulse'"),
 ])
-def test_info_validates_like_the_readers(ds_file, tmp_path, capsys, edit, problem):
+def test_info_validates_like_the_readers(ds_file, tmp_path, capsys, edit, problem, refusal):
+    """`sonarsim info` reports the problem for which the reader (or, for an all-zero pulse,
+    recon's check before any work) refuses the file."""
     bad = _edit_dataset(ds_file, tmp_path / "bad.h5", edit)
-    with pytest.raises((FormatError, InputError)):
-        if "pulse' is all zero" not in problem:       # every reader refuses these files
+    if "pulse' is all zero" not in problem:           # every reader refuses these files
+        with pytest.raises((FormatError, InputError), match=refusal):
             SonarDataset.read(bad)
-        else:                                         # recon refuses an all-zero pulse
-            raise InputError("all zero")
+    else:                                             # the reader loads it; recon refuses it
+        from recon.checks import check_signal
+        with pytest.raises(InputError, match=refusal):
+            check_signal(SonarDataset.read(bad), "bad.h5")
     assert sonarsim_main(["info", str(bad)]) == 1
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
     assert problem in captured.out
-    assert "PROBLEMS" in captured.out or "not a valid sonarsim file" in captured.out
+    assert f"{'PROBLEMS':<22} 1: a reader refuses this file" in captured.out
 
 
 def test_info_summary_still_printed_for_invalid_dataset(ds_file, tmp_path, capsys):
