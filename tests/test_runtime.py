@@ -41,12 +41,17 @@ def test_configured_llvm_is_never_15():
     assert runtime.llvm_version(path) == int(loaded)
 
 
-def test_invalid_user_llvm_path_is_replaced():
-    bad = "/lib/x86_64-linux-gnu/libLLVM-15.so.1"
-    r = _run("import os; from sonarsim import runtime; runtime.mitsuba(); "
-             "print(os.environ.get('DRJIT_LIBLLVM_PATH'))", DRJIT_LIBLLVM_PATH=bad)
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.strip() != bad
+def test_invalid_user_llvm_path_is_replaced(tmp_path):
+    """A user's libLLVM 15 (an existing file: 15 aborts) and a missing file are both replaced
+    by the newest discovered libLLVM >= 16."""
+    found = [path for version, path in runtime.find_llvm_candidates() if version >= 16][0]
+    existing_15 = tmp_path / "libLLVM-15.so.1"
+    existing_15.write_bytes(b"")
+    for bad in (str(existing_15), str(tmp_path / "libLLVM-19.so.1")):
+        r = _run("import os; from sonarsim import runtime; runtime.mitsuba(); "
+                 "print(os.environ.get('DRJIT_LIBLLVM_PATH'))", DRJIT_LIBLLVM_PATH=bad)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip() == found
 
 
 def test_valid_user_llvm_path_is_honoured():
