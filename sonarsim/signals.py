@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.fft
 
 from .errors import FormatError, InputError
 
@@ -194,6 +193,13 @@ def _complex_dtype(arr: np.ndarray) -> type:
     return np.complex64 if arr.dtype in (np.float32, np.float16, np.complex64) else np.complex128
 
 
+def _fft():
+    """scipy.fft, imported on first use: every sonarsim and recon command imports this module
+    to build its parser, and scipy.fft costs ~0.2 CPU-s of that start-up."""
+    import scipy.fft
+    return scipy.fft
+
+
 def _row_blocks(n_rows: int, n_fft: int):
     step = max(1, _BLOCK_SAMPLES // max(n_fft, 1))
     for start in range(0, n_rows, step):
@@ -213,7 +219,7 @@ def _positive_to_complex(half: np.ndarray, n: int) -> np.ndarray:
     """Inverse FFT of a spectrum that is ``half`` on bins 0 … n//2 and zero on negative bins."""
     full = np.zeros(half.shape[:-1] + (n,), dtype=half.dtype)
     full[..., :half.shape[-1]] = half
-    return scipy.fft.ifft(full, axis=-1)
+    return _fft().ifft(full, axis=-1)
 
 
 def analytic(x, axis: int = -1) -> np.ndarray:
@@ -232,7 +238,7 @@ def analytic(x, axis: int = -1) -> np.ndarray:
     out = np.empty(rows.shape, dtype=_complex_dtype(arr))
     weights = _positive_weights(n)
     for block in _row_blocks(rows.shape[0], n):
-        half = scipy.fft.rfft(rows[block], axis=-1) * weights.astype(out.real.dtype)
+        half = _fft().rfft(rows[block], axis=-1) * weights.astype(out.real.dtype)
         out[block] = _positive_to_complex(half, n)
     return np.moveaxis(out.reshape(moved.shape), -1, axis)
 
@@ -266,17 +272,17 @@ def matched_filter(x, pulse, axis: int = -1, mode: str = "linear") -> np.ndarray
             raise InputError(f"pulse ({p.size} samples) is longer than the signal ({n_time})")
         n_fft = n_time
     elif mode == "linear":
-        n_fft = scipy.fft.next_fast_len(n_time + p.size - 1, real=True)
+        n_fft = _fft().next_fast_len(n_time + p.size - 1, real=True)
     else:
         raise InputError(f"mode: expected 'circular' or 'linear', got '{mode}'")
     out_dtype = _complex_dtype(arr)
-    kernel = np.conj(scipy.fft.rfft(p.astype(np.float64), n=n_fft)) * _positive_weights(n_fft, True)
+    kernel = np.conj(_fft().rfft(p.astype(np.float64), n=n_fft)) * _positive_weights(n_fft, True)
     kernel = kernel.astype(out_dtype)
     moved = np.moveaxis(arr, axis, -1)
     rows = moved.reshape(-1, n_time)
     out = np.empty(rows.shape, dtype=out_dtype)
     for block in _row_blocks(rows.shape[0], n_fft):
-        half = scipy.fft.rfft(rows[block], n=n_fft, axis=-1) * kernel
+        half = _fft().rfft(rows[block], n=n_fft, axis=-1) * kernel
         out[block] = _positive_to_complex(half, n_fft)[:, :n_time]
     return np.moveaxis(out.reshape(moved.shape), -1, axis)
 
@@ -308,13 +314,13 @@ def fractional_delay(x, delay_samples, axis: int = -1) -> np.ndarray:
     n = moved.shape[-1]
     ramp_dtype = _complex_dtype(arr)
     if np.iscomplexobj(moved):
-        ramp = np.exp(-2j * np.pi * scipy.fft.fftfreq(n) * delay).astype(ramp_dtype)
-        out = scipy.fft.ifft(scipy.fft.fft(moved, axis=-1) * ramp, axis=-1)
+        ramp = np.exp(-2j * np.pi * _fft().fftfreq(n) * delay).astype(ramp_dtype)
+        out = _fft().ifft(_fft().fft(moved, axis=-1) * ramp, axis=-1)
     else:
         if not np.issubdtype(moved.dtype, np.floating):
             moved = moved.astype(np.float64)
-        ramp = np.exp(-2j * np.pi * scipy.fft.rfftfreq(n) * delay).astype(ramp_dtype)
-        out = scipy.fft.irfft(scipy.fft.rfft(moved, axis=-1) * ramp, n=n, axis=-1)
+        ramp = np.exp(-2j * np.pi * _fft().rfftfreq(n) * delay).astype(ramp_dtype)
+        out = _fft().irfft(_fft().rfft(moved, axis=-1) * ramp, n=n, axis=-1)
     return np.moveaxis(out, -1, axis)
 
 
