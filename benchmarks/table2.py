@@ -546,9 +546,9 @@ def run_batch(cells: list[Cell], settings: Settings, out: Path, source: str = "a
         raise SystemExit("table2: cells failed:\n" + "\n".join(
             f"{n}: {result.errors.get(n, result.status[n])}" for n in result.failed))
     jobs = {j.name: j for j in plan.jobs}
-    sim_wall = _simulation_walls(result.csv)
+    sim_times = _simulation_times(result.csv)
     return [cell_result(cell, jobs[where[cell.name][0]], where[cell.name][1], settings,
-                        plan.warnings, sim_wall) for cell in cells]
+                        plan.warnings, sim_times) for cell in cells]
 
 
 def _scene_note(note: str, scene: str) -> str:
@@ -557,31 +557,37 @@ def _scene_note(note: str, scene: str) -> str:
     return rest[len(scene) + 2:] if rest.startswith(scene + ": ") else rest
 
 
-def _simulation_walls(csv_path: Path) -> dict[str, float | None]:
-    """{job: simulation wall time (s)} from the batch's ``batch.csv``."""
+def _simulation_times(csv_path: Path) -> dict[str, tuple[float | None, float | None]]:
+    """{job: (simulation wall time, its CPU time) (s)} from the batch's ``batch.csv`` (None
+    where the job's scan was not simulated by this batch, e.g. adopted with ``--data``)."""
+    def number(text):
+        return float(text) if text else None
     with open(csv_path, newline="") as fh:
-        return {r["job"]: (float(r["wall_s"]) if r.get("wall_s") else None)
+        return {r["job"]: (number(r.get("wall_s")), number(r.get("cpu_s")))
                 for r in csv.DictReader(fh)}
 
 
 def cell_result(cell: Cell, job, label: str, settings: Settings, notes: list[str],
-                sim_wall: dict) -> dict:
+                sim_times: dict) -> dict:
     """One cell from the batch's files: cell keys, ``time_s`` (the solve's wall time),
-    ``stages_s`` (dataset, deconvolve, solve, evaluate), the ``volume`` and ``dataset``
+    ``stages_s`` (dataset, deconvolve, solve, evaluate; wall) and ``stages_cpu_s`` (the same
+    stages' CPU time, user + system; None where not recorded), the ``volume`` and ``dataset``
     paths, the measured SNR and ``exact`` and ``reference`` metrics (``recon evaluate``'s)."""
     from sonarsim.dataset import inspect
     step = next(s for s in job.recon if s.label == label)
-    metrics, wall = {}, {}
+    metrics, wall, cpu = {}, {}, {}
     for evaluation in step.evaluations:
         saved = json.loads(Path(evaluation.output).read_text())
         metrics[evaluation.name] = {k: v for k, v in saved["metrics"].items() if k != "sweep"}
-        wall = saved.get("wall_s", {})
+        wall, cpu = saved.get("wall_s", {}), saved.get("cpu_s", {})
     with inspect(job.output) as (_, f):
         measured = (f.get("meta") or {}).get("effective_snr_db", f.get("snr_db"))
         mc = (f.get("meta") or {}).get("mc_snr_db")
         n_pings = int(f["tx"].shape[0])
     deconv = step.settings.get("deconvolve")
     evaluate_s = sum(v for k, v in wall.items() if k.startswith("evaluate") and v)
+    evaluate_cpu = [v for k, v in cpu.items() if k.startswith("evaluate")]
+    sim_wall, sim_cpu = sim_times.get(job.name, (None, None))
     m = METHOD_BY_KEY[cell.method]
     return {"cell": cell.name, "method": cell.method, "label": m.label, "shape": cell.shape,
             "snr_db": float(cell.snr_db), "bandwidth": cell.bandwidth,
@@ -594,8 +600,28 @@ def cell_result(cell: Cell, job, label: str, settings: Settings, notes: list[str
                       if Path(n.split(": ", 1)[0]).stem == Path(job.params["scene"]).stem],
             "reference": metrics["reference"], "exact": metrics["exact"],
             "evaluate_s": evaluate_s,
-            "stages_s": {"dataset_s": sim_wall.get(job.name), "deconvolve_s": wall.get("deconvolve"),
-                         "solve_s": wall.get("solve"), "evaluate_s": evaluate_s}}
+            "stages_s": {"dataset_s": sim_wall, "deconvolve_s": wall.get("deconvolve"),
+                         "solve_s": wall.get("solve"), "evaluate_s": evaluate_s},
+            "stages_cpu_s": {"dataset_s": sim_cpu, "deconvolve_s": cpu.get("deconvolve"),
+                             "solve_s": cpu.get("solve"),
+                             "evaluate_s": sum(evaluate_cpu) if evaluate_cpu else None}}
+
+
+def stage_sums(results: list[dict], key: str = "stages_s") -> tuple[dict, list[str]]:
+    """({stage: seconds summed over ``results``' cells}, [stages some cell lacks]) of the
+    cells' ``key`` (``stages_s`` wall, ``stages_cpu_s`` CPU); a job's simulation counts once
+    (its cells share it)."""
+    totals, missing, jobs_seen = {}, set(), set()
+    for r in results:
+        for k, v in (r.get(key) or {}).items():
+            if k == "dataset_s":
+                if r["job"] in jobs_seen:
+                    continue
+                jobs_seen.add(r["job"])
+            totals[k] = totals.get(k, 0.0) + (v or 0.0)
+            if v is None and not (k == "deconvolve_s" and r["method"] in ("bp", "pfa")):
+                missing.add(k[:-2])
+    return totals, sorted(missing)
 
 
 # ------------------------------------------------------------------------------ outputs
@@ -857,9 +883,11 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         notes += r.get("notes", [])
         e, x = r["reference"], r["exact"]
-        stages = r["stages_s"]
-        print(f"{r['cell']:>28}: solve {fmt(stages.get('solve_s'), '.1f')} s, evaluate "
-              f"{fmt(stages.get('evaluate_s'), '.1f')} s | reference: IoU "
+        stages, cpu = r["stages_s"], r.get("stages_cpu_s") or {}
+        print(f"{r['cell']:>28}: solve {fmt(stages.get('solve_s'), '.1f')} s "
+              f"({fmt(cpu.get('solve_s'), '.0f')} CPU-s), evaluate "
+              f"{fmt(stages.get('evaluate_s'), '.1f')} s ({fmt(cpu.get('evaluate_s'), '.0f')} "
+              f"CPU-s) | reference: IoU "
               f"{fmt(e['iou'], '.3f')}, C² {fmt(e['chamfer_sq'], '.2e')}, PSNR "
               f"{fmt(e.get('psnr_depth'), '.2f')} | exact: IoU {fmt(x['iou'], '.3f')}, C² "
               f"{fmt(x['chamfer_sq'], '.2e')}", flush=True)
@@ -883,17 +911,12 @@ def main(argv: list[str] | None = None) -> int:
          "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
          "peak_rss_mb": peak_mb, "n_pings": settings.n_pings}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())
-    stage_totals, jobs_seen = {}, set()
-    for r in results:      # cells of an earlier run report their own stage times
-        for k, v in (r.get("stages_s") or {}).items():
-            if k == "dataset_s":            # one simulation per job, shared by its cells
-                if r["job"] in jobs_seen:
-                    continue
-                jobs_seen.add(r["job"])
-            stage_totals[k] = stage_totals.get(k, 0.0) + (v or 0.0)
     usage = resource.getrusage(resource.RUSAGE_SELF)
-    print("stages (s, summed over cells): "
-          + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in stage_totals.items()))
+    for key, what in (("stages_s", "wall"), ("stages_cpu_s", "CPU, user+sys")):
+        totals, missing = stage_sums(results, key)
+        print(f"stages ({what}, s, summed over cells; cells of an earlier run count their own): "
+              + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in totals.items())
+              + (f" (not recorded: {', '.join(missing)})" if missing else ""))
     print(f"total {total:.0f} s wall, {usage.ru_utime + usage.ru_stime:.0f} s CPU (user+sys) "
           f"in this process, peak RSS {peak_mb:.0f} MB; outputs in {out}")
     return 0

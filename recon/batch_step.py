@@ -411,33 +411,40 @@ def reconstruct(job, step: ReconStep) -> dict:
     A step whose volume is already there (complete, with this step's id) but one of whose
     metrics files is missing or not its own (e.g. deleted to re-evaluate with changed
     evaluation code) is not solved again: only the missing evaluations run, and the wall
-    times of the solve are taken over from the step's remaining metrics files."""
+    times of the solve are taken over from the step's remaining metrics files.
+
+    The metrics files record each stage's wall time (``wall_s``) and this process's CPU time
+    during it (``cpu_s``, user + system of all its threads; a stage's own CPU when one step
+    runs per process at a time, as with the sequential scheduler)."""
     from .evaluation import evaluate_file, json_safe
     from .grid import scene_box_of
     from .groundtruth import load_ground_truth
     s = step.settings
-    wall = {}
+    wall, cpu = {}, {}
     reuse = bool(step.evaluations) and _own_volume(step)
     if reuse:
         kept = [m for m in (_own_metrics(step, e) for e in step.evaluations) if m is not None]
-        wall = {k: v for k, v in (kept[0].get("wall_s", {}) if kept else {}).items()
-                if not k.startswith("evaluate")}
+        for times, key in ((wall, "wall_s"), (cpu, "cpu_s")):
+            times.update({k: v for k, v in (kept[0].get(key, {}) if kept else {}).items()
+                          if not k.startswith("evaluate")})
         wall["reused_volume"] = True
     else:
         mod = importlib.import_module(s["module"])
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if s.get("deconvolve"):
             dataset = deconvolved(job, s["deconvolve"])
             wall["deconvolve"] = time.perf_counter() - t0
+            cpu["deconvolve"] = time.process_time() - c0
         else:
             dataset = SonarDataset.read(job.output)
         checks.check_signal(dataset, job.output, warn=lambda m: None)
         grid = grid_from_options(box_bounds(scene_box_of(dataset)), s["bounds"], s["shape"],
                                  s["voxel_size"])
         checks.check_grid(dataset, grid, checks.bytes_per_voxel_of(mod))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         volume = mod.solve(dataset, grid, progress=False, **s["options"])
         wall["solve"] = time.perf_counter() - t0
+        cpu["solve"] = time.process_time() - c0
         del dataset
         volume.params.update(dataset=job.output, batch_step_id=step.step_id,
                              batch_step=json.dumps(step.params, sort_keys=True))
@@ -456,18 +463,20 @@ def reconstruct(job, step: ReconStep) -> dict:
         for evaluation in step.evaluations:
             saved = _own_metrics(step, evaluation) if reuse else None
             if saved is not None:
-                for k, v in saved.get("wall_s", {}).items():
-                    if k.startswith("evaluate"):
-                        wall.setdefault(k, v)
+                for times, key in ((wall, "wall_s"), (cpu, "cpu_s")):
+                    for k, v in saved.get(key, {}).items():
+                        if k.startswith("evaluate"):
+                            times.setdefault(k, v)
                 results.append((evaluation, saved["metrics"], False))
                 continue
             options = dict(evaluation.options)
             options.setdefault("sweep", True)
             crop = options.pop("crop", None)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             result = evaluate_file(tmp_volume, gt, crop=crop, **options)
-            wall[f"evaluate{'_' + evaluation.name if evaluation.name else ''}"] = \
-                time.perf_counter() - t0
+            stage = f"evaluate{'_' + evaluation.name if evaluation.name else ''}"
+            wall[stage] = time.perf_counter() - t0
+            cpu[stage] = time.process_time() - c0
             result["volume"] = step.output
             results.append((evaluation, json_safe(result), True))
         for evaluation, result, new in results:
@@ -475,6 +484,7 @@ def reconstruct(job, step: ReconStep) -> dict:
                 with atomic_path(evaluation.output) as tmp:
                     tmp.write_text(json.dumps({"batch_step_id": step.step_id, "job": job.name,
                                                "evaluation": evaluation.name, "wall_s": wall,
+                                               "cpu_s": cpu,
                                                "metrics": result}, indent=1))
             prefix = f"{evaluation.name}_" if evaluation.name else ""
             metrics.update({prefix + k: v for k, v in summary_metrics(result).items()})

@@ -121,6 +121,20 @@ def test_metrics_are_consistent_and_labels_are_measured(quick_run):
 
 
 @pytest.mark.slow
+def test_every_stage_records_its_cpu_time(quick_run, table2):
+    cells = _result(quick_run)["cells"]
+    for c in cells:
+        cpu, wall = c["stages_cpu_s"], c["stages_s"]
+        assert cpu["dataset_s"] > 0 and cpu["solve_s"] > 0 and cpu["evaluate_s"] > 0
+        assert (cpu["deconvolve_s"] is None) == (wall["deconvolve_s"] is None)
+    totals, missing = table2.stage_sums(cells, "stages_cpu_s")
+    jobs = {c["job"]: c["stages_cpu_s"]["dataset_s"] for c in cells}
+    assert totals["dataset_s"] == pytest.approx(sum(jobs.values()))   # once per job
+    assert totals["solve_s"] == pytest.approx(sum(c["stages_cpu_s"]["solve_s"] for c in cells))
+    assert missing == []
+
+
+@pytest.mark.slow
 def test_markdown_means_and_published_rows(quick_run, table2):
     cells = _result(quick_run)["cells"]
     main = [c for c in cells if c["snr_db"] == 20.0 and c["bandwidth"] == "20k"]
@@ -302,5 +316,7 @@ def test_data_dir_adopts_the_same_simulation_only(table2, tmp_path):
     redone = json.loads(ref_json.read_text())
     assert redone["wall_s"]["reused_volume"] is True
     assert redone["wall_s"]["solve"] == saved["wall_s"]["solve"]
+    assert redone["cpu_s"]["solve"] == saved["cpu_s"]["solve"] > 0    # taken over, not re-timed
+    assert first["stages_cpu_s"]["dataset_s"] is None and first["stages_cpu_s"]["solve_s"] > 0
     assert again["reference"]["iou"] == first["reference"]["iou"]
     assert again["reference"]["chamfer_sq"] == first["reference"]["chamfer_sq"]

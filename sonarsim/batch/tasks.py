@@ -1,6 +1,7 @@
 """The functions a batch's workers run: one simulation, one reconstruction step."""
 from __future__ import annotations
 
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,9 @@ def _discard_stale_partials(job: Job) -> None:
 
 def run_simulation(job: Job) -> dict:
     """Worker side: simulate ``job`` unless its complete output exists; returns
-    {'ran': bool, **fidelity}. The scene, poses and pulse must be what was validated."""
+    {'ran': bool, **fidelity}, with ``cpu_s`` (this process's CPU time, user + system of all
+    its threads, during the simulation; batch.csv's column) when it ran. The scene, poses and
+    pulse must be what was validated."""
     from ..simulate import simulate
     done = dataset_record(job.output, job.job_id)
     if done is not None:
@@ -51,15 +54,18 @@ def run_simulation(job: Job) -> dict:
     if not Path(job.output).parent.is_dir():
         raise FormatError(f"{Path(job.output).parent}: output directory not found on this "
                           "worker (the batch needs a file system shared with the workers)")
+    c0 = time.process_time()
     with locked(job.output):
         if dataset_record(job.output, job.job_id) is None:   # not finished meanwhile
             _discard_stale_partials(job)
             simulate(spec, poses, job.output, settings, resume=True, progress=False)
+    cpu_s = time.process_time() - c0
     record = dataset_record(job.output, job.job_id)
     if record is None:
         raise FormatError(f"{job.output}: not a complete dataset of job '{job.name}' after "
                           "the simulation")
-    return {"ran": True, **record, **({"notes": " | ".join(notes)} if notes else {})}
+    return {"ran": True, **record, "cpu_s": cpu_s,
+            **({"notes": " | ".join(notes)} if notes else {})}
 
 
 def run_reconstruction(job: Job, step: ReconStep, _needed: Any = None) -> dict:
