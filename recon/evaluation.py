@@ -17,7 +17,7 @@ from sonarsim.errors import InputError, SonarsimError
 
 from . import export, groundtruth, metrics, protocol_reference, views
 
-PROTOCOLS = ("exact", "reference")
+from .evaluation_options import PROTOCOLS  # noqa: E402 (re-exported)
 
 
 def is_mesh_file(path) -> bool:

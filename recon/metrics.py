@@ -47,7 +47,7 @@ from . import export, groundtruth
 from .containment import _axis_parity, inside_mesh_lattice  # noqa: F401 (re-exported)
 
 IOU_CELL = 0.005
-N_SURFACE_SAMPLES = 20_000
+from .evaluation_options import N_SURFACE_SAMPLES  # noqa: E402 (re-exported)
 DEFAULT_SWEEP = tuple(np.round(np.arange(0.05, 0.951, 0.05), 2))
 
 

@@ -37,6 +37,7 @@ from sonarsim.errors import InputError
 
 from . import export
 from .containment import inside_mesh_lattice, inside_mesh_points
+from .evaluation_options import MAPPINGS, N_VOLUME_SAMPLES  # noqa: F401
 from .metrics import (N_SURFACE_SAMPLES, PointSet, cached_gt, iou, surface_agreement,
                       surface_samples)
 
@@ -44,9 +45,7 @@ BOX = np.array([[-0.2, 0.2], [-0.2, 0.2], [0.0, 0.3]])      # the simulated scen
 GRID_SHAPE = (125, 125, 94)                                  # its voxel grid (3.2 mm)
 IOU_UNIT = 0.005                                             # IoU cell (m)
 IOU_CELLS = tuple(int((hi - lo) / IOU_UNIT) for lo, hi in BOX)   # (80, 80, 60), as the reference
-N_VOLUME_SAMPLES = 50_000
 SWEEP = tuple(float(t) for t in np.round(np.arange(0.10, 0.50, 0.01), 2))
-MAPPINGS = ("reference", "centre")
 # Chamfer sweep: a surface per threshold costs a constrained smoothing each, so the Chamfer's
 # best τ is searched on this coarser subset of SWEEP (the IoU's on all of it).
 CHAMFER_SWEEP = tuple(float(t) for t in np.round(np.arange(0.10, 0.50, 0.05), 2))

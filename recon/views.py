@@ -155,7 +155,7 @@ REFERENCE_VIEWS = Turntable(n_views=10, resolution=512, **REFERENCE_CAMERAS["def
 # ... and with its released command line's "--fov 60", which pyrender reads as 60 radians.
 RELEASED_VIEWS = Turntable(n_views=10, distance=0.3, elevation=0.1, look_height=0.1,
                            yfov=60.0, resolution=512)
-REFERENCE_VIEW_SETS = ("paper", "released")
+from .evaluation_options import REFERENCE_VIEW_SETS  # noqa: E402 (re-exported)
 
 
 def reference_views(shape: str | None, which: str = "paper") -> Turntable:

@@ -6,8 +6,7 @@ from pathlib import Path
 
 from sonarsim.errors import InputError
 
-from .. import export, metrics
-from ..evaluation import evaluate_file, fmt_value
+from .. import export
 
 HELP = "Compare volumes side by side: MIPs, renders and metrics against a ground-truth mesh."
 
@@ -29,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib
     matplotlib.use("Agg")
 
-    from .. import figures, views
+    from .. import figures, metrics, views
+    from ..evaluation import evaluate_file, fmt_value
 
     if args.out.suffix.lower() not in (".png", ".pdf", ".svg"):
         raise InputError(f"{args.out}: the figure must be .png, .pdf or .svg")

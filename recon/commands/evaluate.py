@@ -7,9 +7,9 @@ import json
 import logging
 from pathlib import Path
 
-from .. import export, metrics, protocol_reference
-from ..evaluation import PROTOCOLS, evaluate_file, format_table, json_safe
-from ..views import REFERENCE_VIEW_SETS
+from .. import export
+from ..evaluation_options import MAPPINGS, N_SURFACE_SAMPLES, N_VOLUME_SAMPLES, PROTOCOLS, \
+    REFERENCE_VIEW_SETS
 
 HELP = ("Evaluate a volume or a mesh against a ground-truth mesh (IoU, Chamfer, normals, "
         "PSNR/SSIM, threshold sweep).")
@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-sweep", action="store_true", help="skip the threshold sweep")
     parser.add_argument("--no-images", action="store_true",
                         help="skip the rendered-image metrics (PSNR, SSIM)")
-    parser.add_argument("--samples", type=int, default=metrics.N_SURFACE_SAMPLES,
+    parser.add_argument("--samples", type=int, default=N_SURFACE_SAMPLES,
                         help="surface samples per mesh for Chamfer (default 20000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -43,9 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and quirks (50 000 GT volume samples, its 80x80x59 IoU grid, "
                              "binarised + smoothed mesh with its vertex mapping, its 10 views "
                              "from its camera table); see docs/evaluation.md")
-    parser.add_argument("--volume-samples", type=int, default=protocol_reference.N_VOLUME_SAMPLES,
+    parser.add_argument("--volume-samples", type=int, default=N_VOLUME_SAMPLES,
                         help="GT volume samples of the reference protocol (default 50000)")
-    parser.add_argument("--vertex-mapping", choices=protocol_reference.MAPPINGS,
+    parser.add_argument("--vertex-mapping", choices=MAPPINGS,
                         default="reference",
                         help="reference protocol's mesh vertex mapping: 'reference' (its "
                              "padding offset and /n, default) or 'centre' (voxel centres)")
@@ -56,6 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..evaluation import evaluate_file, format_table, json_safe
     result = evaluate_file(args.volume, args.gt, threshold=args.threshold,
                            normalize=args.normalize, sweep=not args.no_sweep,
                            images=not args.no_images, samples=args.samples, seed=args.seed,
