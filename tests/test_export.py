@@ -56,6 +56,15 @@ def test_voxel_spacing_conventions():
         export.voxel_spacing(np.array([[0, 0], [0, 1], [0, 1]]), (3, 3, 3))
 
 
+def test_occupied_points_are_the_centres_strictly_above_the_threshold():
+    """The Chamfer's point set: voxel centres with magnitude > τ (a voxel at τ is out, as in
+    the evaluation's cached sweep, ``mag > t``), in world metres."""
+    mag = np.zeros((3, 2, 2))
+    mag[0, 1, 0], mag[2, 0, 1], mag[1, 1, 1] = 0.2, 0.7, 0.2 + 1e-6
+    pts = export.occupied_points(mag, [[-1.0, 1.0], [0.0, 0.5], [2.0, 3.0]], 0.2)
+    assert sorted(map(tuple, pts.tolist())) == [(0.0, 0.5, 3.0), (1.0, 0.0, 3.0)]
+
+
 def test_sphere_mesh_vertices_lie_on_world_sphere():
     mesh = export.extract_surface(cone(), BOUNDS, 0.5)
     r = np.linalg.norm(mesh.vertices - CENTRE, axis=1)
