@@ -105,3 +105,33 @@ def test_single_voxel_rule_has_one_home():
     np.testing.assert_array_equal(vol.voxel_size(), nan)
     with pytest.raises(ValueError):
         voxel_spacing(bounds, (1, 1, 1), "min")
+
+
+@pytest.mark.parametrize("window_m", [(0.10, 0.65), (0.10, 0.80), (1.45, 1.60), (1.38, 1.60),
+                                      (0.95, 1.05)])
+def test_grid_coverage_check_matches_the_paths_of_the_grid_points(window_m):
+    """recon.checks.check_grid_sees_data refuses a grid iff no round-trip path tx -> point ->
+    rx of the grid's box lies in the recorded window. Monostatic (tx = rx), where its bound
+    is exact, against the paths of 41³ points of the box (corners and the nearest point
+    included): windows ending just before / after the nearest path (0.721 m) and starting
+    just after / before the farthest one (1.414 m), and one inside."""
+    from types import SimpleNamespace
+
+    from recon.checks import check_grid_sees_data
+    c, fs = 343.0, 1e4
+    first_k = int(np.ceil(window_m[0] * fs / c))
+    last_k = int(np.floor(window_m[1] * fs / c))
+    ds = SimpleNamespace(tx=np.zeros((1, 3)), rx=np.zeros((1, 3)), start_sample=first_k,
+                         waveforms=np.zeros((1, last_k - first_k + 1)), fs=fs, sound_speed=c)
+    bounds = [[0.3, 0.5], [0.2, 0.4], [-0.3, 0.3]]
+    axes = [np.linspace(lo, hi, 41) for lo, hi in bounds]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    paths = 2 * np.linalg.norm(points, axis=1)
+    seen = np.any((paths >= c * first_k / fs) & (paths <= c * last_k / fs))
+    assert seen == (window_m in [(0.10, 0.80), (1.38, 1.60), (0.95, 1.05)])   # the geometry
+    grid = Grid(bounds, (5, 5, 5))
+    if seen:
+        check_grid_sees_data(ds, grid)
+    else:
+        with pytest.raises(InputError, match="no voxel of the grid lies within"):
+            check_grid_sees_data(ds, grid)
