@@ -61,7 +61,7 @@ class SolverSettings(NetworkSettings):
     output: str = "solid"
     solid_threshold: float = 0.5
     solid_min_fraction: float = 0.1
-    solid_close: int = 1
+    solid_close: int = 3
     solid_ground: bool = True
     solid_hidden: int = 256
 
@@ -194,7 +194,7 @@ HELP = {
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
                         occlusion_scale=500.0, sparsity=0.0, reg_start=500,
-                        solid_threshold=0.3, solid_close=3)
+                        solid_threshold=0.3)
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
 # matters written out, so a change of a field's default above cannot move them; which scenes
@@ -202,10 +202,10 @@ NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
 # sampling and network sizes; 'sim'/'airsas': the reference's per-scene priors (scripts of
 # the paper's code, §4.8 of the method description).
 # The exported volume of both frozen presets: the solid occupancy (recon.solid), with a
-# threshold per representation (docs/reconstruction.md, "Solid output"); NBP closes gaps by 3
+# threshold per representation (docs/reconstruction.md, "Solid output"); gaps closed by 3
 # voxels (≈ the range resolution c/2B = 8.6 mm of the Table-2 LFM on 3.2 mm voxels; measured on
 # the Table-2 shapes and held-out torus / two-object / bowl, docs "Solid output").
-SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=1, solid_ground=True,
+SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=3, solid_ground=True,
              solid_hidden=256)
 
 PRESETS = {
@@ -218,7 +218,7 @@ PRESETS = {
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
                 hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
                 hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
-                **dict(SOLID, solid_close=3), solid_threshold=0.3),
+                **SOLID, solid_threshold=0.3),
     "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
                 hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
