@@ -135,3 +135,17 @@ def test_grid_coverage_check_matches_the_paths_of_the_grid_points(window_m):
     else:
         with pytest.raises(InputError, match="no voxel of the grid lies within"):
             check_grid_sees_data(ds, grid)
+
+
+def test_index_of_is_the_nearest_centre_clipped_to_the_grid():
+    g = Grid([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]], (11, 11, 11))        # centres 0.1 apart
+    assert g.index_of([0.26, 0.34, 0.5]) == (3, 3, 5)                   # nearest, not floor
+    assert g.index_of([-5.0, 2.0, 0.96]) == (0, 10, 10)                 # outside: clipped
+    assert g.index_of(g.position_of((7, 2, 9))) == (7, 2, 9)
+
+
+def test_voxel_size_rounds_the_count_of_pitches():
+    """round((hi - lo) / size) + 1 centres per axis, from lo to hi (pitch adjusted)."""
+    g = Grid.from_voxel_size([[0.0, 0.1], [0.0, 0.2], [0.0, 0.05]], 0.035)
+    assert g.shape == (4, 7, 2)                        # 2.86 -> 3, 5.71 -> 6, 1.43 -> 1 pitches
+    np.testing.assert_allclose(g.spacing, [0.1 / 3, 0.2 / 6, 0.05])
