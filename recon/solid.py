@@ -33,11 +33,17 @@ largest one in the box is dropped with the floaters. Tests: tests/test_solid.py.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from sonarsim.errors import InputError
 
 DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0)
+
+
+def _ndimage():
+    """scipy.ndimage, imported on first use (every ``recon`` command imports this module
+    while its parser is built; the import costs ~0.1 CPU-s)."""
+    from scipy import ndimage
+    return ndimage
 
 
 def occupancy(volume: np.ndarray, threshold: float) -> np.ndarray:
@@ -51,7 +57,7 @@ def occupancy(volume: np.ndarray, threshold: float) -> np.ndarray:
 
 def drop_small_components(occupied: np.ndarray, min_fraction: float) -> np.ndarray:
     """Keep the 26-connected components of at least ``min_fraction`` × the largest's size."""
-    labels, n = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, n = _ndimage().label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
     if n <= 1:
         return occupied.copy()
     sizes = np.bincount(labels.ravel())[1:]
@@ -65,7 +71,7 @@ def close_gaps(occupied: np.ndarray, radius: int) -> np.ndarray:
     if radius <= 0:
         return occupied.copy()
     pad = radius + 1
-    closed = ndimage.binary_closing(np.pad(occupied, pad), iterations=radius)
+    closed = _ndimage().binary_closing(np.pad(occupied, pad), iterations=radius)
     return occupied | closed[pad:-pad, pad:-pad, pad:-pad]
 
 
@@ -73,9 +79,9 @@ def fill_enclosed(occupied: np.ndarray, floor: bool) -> np.ndarray:
     """Fill every empty voxel not joined to the box's boundary by empty voxels (6-connected);
     with ``floor`` the lowest z plane is treated as closed (an occupied plane below it)."""
     if not floor:
-        return ndimage.binary_fill_holes(occupied)
+        return _ndimage().binary_fill_holes(occupied)
     padded = np.pad(occupied, ((0, 0), (0, 0), (1, 0)), constant_values=True)
-    return ndimage.binary_fill_holes(padded)[:, :, 1:]
+    return _ndimage().binary_fill_holes(padded)[:, :, 1:]
 
 
 def sensor_directions(sensors: np.ndarray, count: int, centre: np.ndarray) -> np.ndarray:
