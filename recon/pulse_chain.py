@@ -15,11 +15,14 @@ is smooth on the scale of the range resolution and so has a wider capture range.
 from __future__ import annotations
 
 import numpy as np
-import scipy.fft
 
 from sonarsim.errors import InputError
-from sonarsim.simulate import oversampled_pulse, transients_to_waveforms
-from sonarsim.signals import matched_filter
+
+
+def _fft():
+    """scipy.fft, imported on first use (it costs a command's start-up)."""
+    import scipy.fft
+    return scipy.fft
 
 
 class PulseChain:
@@ -34,13 +37,15 @@ class PulseChain:
         if n_bins < n_samples * oversample:
             raise InputError(f"{n_bins} bins cannot hold {n_samples} samples x {oversample}")
         self.k, self.n_samples, self.n_bins = int(oversample), int(n_samples), int(n_bins)
+        from sonarsim.simulate import oversampled_pulse
         self.pulse_os = oversampled_pulse(np.asarray(pulse, float), self.k)
-        self._n_fft = scipy.fft.next_fast_len(self.n_bins + len(self.pulse_os) - 1, real=True)
-        self._spectrum = scipy.fft.rfft(self.pulse_os, self._n_fft)
+        self._n_fft = _fft().next_fast_len(self.n_bins + len(self.pulse_os) - 1, real=True)
+        self._spectrum = _fft().rfft(self.pulse_os, self._n_fft)
 
     def forward(self, hist: np.ndarray) -> np.ndarray:
         """Waveforms float32 [n, T] of histograms [n, n_bins]."""
         hist = np.asarray(hist)
+        from sonarsim.simulate import transients_to_waveforms
         return transients_to_waveforms(hist[:, None, :], self.pulse_os, self.k, self.n_samples)
 
     def adjoint(self, residual: np.ndarray) -> np.ndarray:
@@ -48,7 +53,7 @@ class PulseChain:
         r = np.asarray(residual, np.float64)
         up = np.zeros((r.shape[0], self._n_fft))
         up[:, :self.n_samples * self.k:self.k] = r
-        corr = scipy.fft.irfft(scipy.fft.rfft(up, axis=-1) * np.conj(self._spectrum),
+        corr = _fft().irfft(_fft().rfft(up, axis=-1) * np.conj(self._spectrum),
                                self._n_fft, axis=-1)
         return corr[:, :self.n_bins]
 
@@ -78,7 +83,7 @@ class Envelope:
     def __init__(self, pulse: np.ndarray, n_samples: int):
         self.pulse = np.asarray(pulse, np.float64)
         self.n_samples = int(n_samples)
-        self._n_fft = scipy.fft.next_fast_len(self.n_samples + self.pulse.size - 1, real=True)
+        self._n_fft = _fft().next_fast_len(self.n_samples + self.pulse.size - 1, real=True)
         n = self._n_fft
         weights = np.zeros(n)              # the matched filter's spectrum weights, full FFT
         weights[0] = 1.0
@@ -86,10 +91,11 @@ class Envelope:
         weights[1:(n + 1) // 2] = 4.0
         if n % 2 == 0:
             weights[half] = 1.0
-        self._kernel = np.conj(scipy.fft.fft(self.pulse, n)) * weights
+        self._kernel = np.conj(_fft().fft(self.pulse, n)) * weights
 
     def __call__(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(e [n, T], z [n, T] complex): the envelope and the matched-filtered signal."""
+        from sonarsim.signals import matched_filter
         z = matched_filter(np.asarray(w, np.float64), self.pulse)
         return np.abs(z), z
 
@@ -98,7 +104,7 @@ class Envelope:
         g = grad_e * z / np.maximum(np.abs(z), 1e-30)
         full = np.zeros((g.shape[0], self._n_fft), complex)
         full[:, :self.n_samples] = g
-        back = scipy.fft.ifft(scipy.fft.fft(full, axis=-1) * np.conj(self._kernel), axis=-1)
+        back = _fft().ifft(_fft().fft(full, axis=-1) * np.conj(self._kernel), axis=-1)
         return back.real[:, :self.n_samples]
 
 

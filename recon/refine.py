@@ -38,12 +38,16 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 
+import typing
+
 import numpy as np
-import trimesh
 
 from sonarsim.errors import InputError
 
 from .pulse_chain import Envelope, PulseChain, envelope_misfit, scaled_misfit
+
+if typing.TYPE_CHECKING:
+    import trimesh
 
 STAGES = ("envelope", "waveform")
 DEFAULT_GROUND = (0.4, 0.4, 1.0)     # m, m, albedo: the simulator's default ground
@@ -129,21 +133,31 @@ class RefineResult:
 
     @property
     def mesh(self) -> trimesh.Trimesh:
+        import trimesh
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
 # ------------------------------------------------------------------------ the start mesh
 
 def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
-               min_component: float = 0.05) -> trimesh.Trimesh:
+               min_component: float = 0.05, wrap_radius: float = 0.0) -> trimesh.Trimesh:
     """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
 
-    Voxels below ``z_min`` (the ground's echo) are cleared first, so the object's surface
-    closes above the ground; components with fewer than ``min_component`` × the largest's
-    faces are dropped (isolated blobs of the volume).
+    With ``wrap_radius`` > 0 (m) the occupied set (normalised |volume| > ``threshold``) is
+    first wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
+    shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
+    surface closes above the ground; components with fewer than ``min_component`` × the
+    largest's faces are dropped (isolated blobs of the volume).
     """
-    from .export import mesh_from_volume, voxel_axes
+    from .export import mesh_from_volume, normalized_magnitude, voxel_axes
     vol = np.array(volume, copy=True)
+    if not (np.isfinite(wrap_radius) and wrap_radius >= 0):
+        raise InputError(f"wrap radius: must be >= 0 m, got {wrap_radius}")
+    if wrap_radius > 0:
+        b = np.asarray(bounds, np.float64)
+        spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
+        occupied = normalized_magnitude(vol, "minmax") > threshold
+        vol, threshold = wrap_occupancy(occupied, spacing, wrap_radius).astype(np.float32), 0.5
     z = voxel_axes(bounds, vol.shape)[2]
     vol[:, :, z < z_min] = 0
     mesh = mesh_from_volume(vol, bounds, threshold)
@@ -152,8 +166,48 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
     return largest_components(mesh, min_component)
 
 
+def wrap_occupancy(occupied: np.ndarray, spacing, radius: float,
+                   min_fraction: float = 0.1) -> np.ndarray:
+    """bool [nx, ny, nz]: ``occupied`` wrapped at ``radius`` (m).
+
+    ``occupied`` ∪ its morphological closing by a Euclidean ball of ``radius`` metres
+    (``spacing`` [3] m per voxel; the array is padded so nothing is lost at the box's faces),
+    then the 26-connected parts with < ``min_fraction`` × the largest's voxels dropped and the
+    enclosed empty voxels filled, the grid's lowest plane counting as the ground
+    (:func:`recon.solid.fill_enclosed`). Gaps narrower than about 2 × ``radius`` (tunnels
+    through a porous shell, a missing face of a box) are sealed; concavities wider than that
+    stay open (docs/refine.md "Wrapped starts").
+    """
+    from scipy import ndimage
+    from . import solid
+    spacing = np.asarray(spacing, np.float64)
+    half = np.ceil(radius / spacing).astype(int)
+    axes = [np.arange(-h, h + 1) * d for h, d in zip(half, spacing)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    ball = x * x + y * y + z * z <= radius * radius
+    pad = [(h + 1, h + 1) for h in half]
+    closed = ndimage.binary_closing(np.pad(occupied, pad), structure=ball)
+    closed = closed[tuple(slice(p[0], -p[1]) for p in pad)]
+    wrapped = solid.drop_small_components(occupied | closed, min_fraction)
+    return solid.fill_enclosed(wrapped, True)
+
+
+def range_resolution(pulse: np.ndarray, fs: float, sound_speed: float) -> float:
+    """c / 2B (m): B (Hz) the band where the pulse's amplitude spectrum is ≥ half its peak
+    (for the Table-2 'lfm-20k' chirp, 30 → 10 kHz: B ≈ 20 kHz, c / 2B ≈ 8.6 mm in air)."""
+    pulse = np.asarray(pulse, np.float64)
+    n = 8 * len(pulse)
+    spectrum = np.abs(np.fft.rfft(pulse, n=n))
+    if not spectrum.max() > 0:
+        raise InputError("the dataset's pulse is zero: cannot derive a range resolution")
+    freqs = np.fft.rfftfreq(n, 1.0 / float(fs))[spectrum >= 0.5 * spectrum.max()]
+    bandwidth = float(freqs.max() - freqs.min())
+    return float(sound_speed) / (2.0 * bandwidth)
+
+
 def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
     """The connected components of ``mesh`` with ≥ ``min_fraction`` × the largest's faces."""
+    import trimesh
     parts = mesh.split(only_watertight=False)
     if len(parts) <= 1:
         return mesh
@@ -214,6 +268,7 @@ def drop_faces(vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray,
                min_component: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """The faces ``mask`` keeps, without unused vertices, and without the connected
     components smaller than ``min_component`` × the largest (faces)."""
+    import trimesh
     kept = trimesh.Trimesh(vertices, np.asarray(faces)[mask], process=False)
     kept.remove_unreferenced_vertices()
     kept = largest_components(kept, min_component)
@@ -269,6 +324,8 @@ class RenderedScene:
     def __init__(self, mesh: trimesh.Trimesh, dataset, window, ground, settings: RefineSettings,
                  workdir, labels: np.ndarray | None = None):
         from pathlib import Path
+
+        import trimesh
         from sonarsim import runtime
         self.mi = mi = runtime.mitsuba()
         import drjit as dr
@@ -376,6 +433,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     remeshing segment.
     """
     import tempfile
+
+    import trimesh
     from sonarsim import runtime
     from sonarsim.progress import progress_bar
     mi = runtime.mitsuba()

@@ -338,6 +338,8 @@ def test_refine_command_writes_a_mesh_and_refuses_bad_input(ball_scan, tmp_path,
                        ([*args, "--force", "--bounces", "0"], "bounces must be a positive integer"),
                        ([*args, "--force", "--support-keep", "1.5"], "support_keep must be in [0, 1)"),
                        ([*args, "--force", "--envelope-blur", "-0.01"], "envelope_blur must be a non-negative"),
+                       ([*args, "--force", "--wrap", "-1"], "--wrap: must be >= 0"),
+                       ([*args, "--force", "--wrap", "2"], "--wrap applies to a volume"),
                        ([str(ball_scan), "--init", str(tmp_path / "none.ply"), "--out",
                          str(tmp_path / "x.ply")], "not found")):
         assert main(["refine", *bad]) == 2
@@ -366,3 +368,67 @@ def test_support_stage_removes_a_floater_the_data_does_not_see(mi, ball_scan):
     support = result.settings["support"]
     assert support["patches_kept"] < support["patches"]
     assert result.mesh.area > 0.7 * ball.area
+
+
+# ------------------------------------------------------------------ wrapped starts
+
+def _porous_box_shell(n=40, lo=10, hi=30):
+    """bool [n, n, n]: the 2-voxel-thick walls of a box [lo, hi)³ with the top face missing
+    and tunnels (1-voxel holes every 4 voxels) through the side walls: the porous, open shell
+    of an NBP solid of the Table-2 cube (docs/refine.md "Wrapped starts")."""
+    occ = np.zeros((n, n, n), bool)
+    occ[lo:hi, lo:hi, lo:hi] = True
+    occ[lo + 2:hi - 2, lo + 2:hi - 2, lo + 2:] = False          # hollow, open at the top
+    for k in range(lo + 3, hi - 3, 4):
+        occ[k, :, k] = False                                     # tunnels along y through two walls
+    return occ
+
+
+def test_wrap_seals_a_porous_open_shell_into_the_solid_box():
+    shell = _porous_box_shell()
+    box = np.zeros_like(shell)
+    box[10:30, 10:30, 10:30] = True
+    wrapped = refine.wrap_occupancy(shell, np.full(3, 0.003), radius=0.003 * 9)
+    # the open top is 16 voxels wide: a ball of radius 9 voxels bridges it with a lid that
+    # sags into the opening (a dish), so the interior fills; nothing is added outside the box
+    assert not (wrapped & ~box).any()
+    assert wrapped[20, 20, 20] and wrapped[20, 20, 24] and wrapped.sum() > 0.9 * box.sum()
+    # too small a radius leaves the top open, so nothing inside is filled
+    small = refine.wrap_occupancy(shell, np.full(3, 0.003), radius=0.003 * 2)
+    assert small[20, 20, 20] == 0 and small.sum() < 0.6 * box.sum()
+
+
+def test_wrap_keeps_a_concavity_wider_than_the_ball_open():
+    """A cup (solid walls, a 16-voxel-wide well open upward): a ball of radius 3 voxels must
+    not lid it, and a second, separate object of comparable size is kept."""
+    occ = np.zeros((48, 40, 40), bool)
+    occ[4:28, 8:32, 4:28] = True
+    occ[8:24, 12:28, 8:] = False                                   # the well
+    occ[34:46, 12:28, 4:16] = True                                 # a second object
+    wrapped = refine.wrap_occupancy(occ, np.full(3, 0.003), radius=0.009)
+    assert not wrapped[16, 20, 10:26].any()                        # the well stays empty
+    assert wrapped[40, 20, 8]                                      # the second object stays
+    assert wrapped.sum() <= occ.sum() * 1.05
+
+
+def test_range_resolution_is_c_over_twice_the_half_amplitude_band():
+    # a band-limited pulse with a flat 20 kHz band around 20 kHz (sinc envelope, 20 ms long)
+    t = (np.arange(2000) - 1000) / FS
+    pulse = np.sinc(20e3 * t) * np.cos(2 * np.pi * 20e3 * t)
+    assert refine.range_resolution(pulse, FS, C) == pytest.approx(C / (2 * 20e3), rel=0.02)
+    # the Table-2 chirp (30 -> 10 kHz, 1 ms, Tukey 0.1): its half-amplitude band is narrower
+    # than the sweep (the chirp's spectrum falls to half at the sweep's ends)
+    res = refine.range_resolution(named_pulse("lfm-20k", FS), FS, C)
+    assert C / (2 * 20e3) < res < C / (2 * 16e3)
+    with pytest.raises(Exception, match="pulse is zero"):
+        refine.range_resolution(np.zeros(8), FS, C)
+
+
+def test_start_mesh_with_wrap_is_one_closed_genus_zero_surface():
+    shell = _porous_box_shell().astype(np.complex64)
+    bounds = np.array([[0.0, 0.117], [0.0, 0.117], [0.0, 0.117]])        # 3 mm voxels
+    plain = refine.start_mesh(shell, bounds, threshold=0.5, z_min=0.0)
+    wrapped = refine.start_mesh(shell, bounds, threshold=0.5, z_min=0.0, wrap_radius=0.027)
+    assert plain.euler_number != 2
+    assert wrapped.is_watertight and wrapped.euler_number == 2
+    assert wrapped.volume == pytest.approx(0.06 ** 3, rel=0.1)

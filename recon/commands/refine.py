@@ -51,6 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--z-min", type=float, default=0.005,
                         help="volume --init: clear voxels below this height (the ground's echo), m "
                              "(default 0.005)")
+    parser.add_argument("--wrap", type=float, default=0.0, metavar="K",
+                        help="volume --init: seal the occupied set's tunnels and holes by a closing "
+                             "with a ball of K x the range resolution c/2B of the dataset's pulse, "
+                             "then fill what it encloses (0: off; default 0; docs/refine.md)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
@@ -80,16 +84,24 @@ def settings_from_args(args):
     return settings
 
 
-def initial_mesh(args):
-    """The start mesh of ``--init`` (a volume's iso-surface or a mesh file)."""
-    from ..refine import start_mesh
+def initial_mesh(args, dataset):
+    """The start mesh of ``--init`` (a volume's iso-surface, wrapped at ``--wrap`` range
+    resolutions of ``dataset``, or a mesh file)."""
+    from ..refine import range_resolution, start_mesh
     path = args.init
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
+    if not (args.wrap >= 0 and args.wrap < float("inf")):
+        raise InputError(f"--wrap: must be >= 0, got {args.wrap}")
     if path.suffix.lower() == ".h5":
         from sonarsim.dataset import Volume
         vol = Volume.read(path)
-        return start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min)
+        radius = 0.0
+        if args.wrap > 0:
+            radius = args.wrap * range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
+        return start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min, wrap_radius=radius)
+    if args.wrap > 0:
+        raise InputError("--wrap applies to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
     return load_mesh(path)
 
@@ -100,8 +112,8 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if args.out.suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
         raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
-    init = initial_mesh(args)
     ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None))
+    init = initial_mesh(args, ds)
     index = _common.parse_slice(args.pings, ds.n_pings)
     result = solve(ds, init, settings, ping_index=index, ground=None if args.no_ground else "dataset",
                    progress=not args.no_progress, log=print)
