@@ -129,6 +129,10 @@ def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int) 
     if not occupied.any() or count <= 0:
         return out
     spacing = np.asarray(spacing, dtype=np.float64)
+    if not np.any(spacing > 0):
+        return out
+    # an axis one voxel thick (a 2-D grid) has zero spacing: any step along it leaves the box
+    spacing = np.where(spacing > 0, spacing, spacing[spacing > 0].min())
     idx = np.argwhere(occupied)
     lo = np.maximum(idx.min(0) - 1, 0)
     hi = np.minimum(idx.max(0) + 2, occupied.shape)

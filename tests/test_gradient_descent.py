@@ -110,17 +110,32 @@ def test_checkpoint_resume_continues_the_same_run(point_ds, tmp_path):
 
 
 def test_regularisers_and_full_model_run(point_ds):
-    """Lambertian + occlusion + all four priors (turned on at iteration 2) give finite values."""
+    """Lambertian + occlusion + all four priors (turned on at iteration 2): each prior's
+    recorded term is linear in its own weight and independent of the others' (at the first
+    prior step the scene is the same in both runs, so doubling one weight doubles exactly its
+    term), and the sparsity prior does what it says: a large weight lowers mean |σ|."""
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.1, 0.1]], (9, 9, 1))      # 2-D grid too
-    seen = []
-    vol = gd.solve(point_ds, g, iterations=4, seed=0, progress=False, n_rays=200,
-                   bins_per_ping=8, sparsity=1.0, smoothness=1.0, phase=0.1, tv=0.1,
-                   reg_start=2, occlusion_scale=500.0, lambertian=True,
-                   callback=lambda it, rec: seen.append(rec))
-    assert set(seen[-1]) >= {"data", "sparsity", "smoothness", "phase", "tv", "loss"}
-    assert "sparsity" not in seen[0]
-    assert all(np.isfinite(r["loss"]) for r in seen)
-    assert np.all(np.isfinite(vol.volume))
+    weights = dict(sparsity=1.0, smoothness=1.0, phase=0.1, tv=0.1)
+
+    def run(iterations=3, **w):
+        seen = []
+        vol = gd.solve(point_ds, g, iterations=iterations, seed=0, progress=False, n_rays=200,
+                       bins_per_ping=8, reg_start=2, occlusion_scale=500.0, lambertian=True,
+                       callback=lambda it, rec: seen.append(rec), **dict(weights, **w))
+        return seen, vol
+
+    base, _ = run()
+    assert "sparsity" not in base[0] and set(base[2]) >= {"data", *weights, "loss"}
+    assert all(base[2][k] > 0 for k in weights)
+    for name in weights:
+        doubled, _ = run(**{name: 2 * weights[name]})
+        for k in weights:
+            assert doubled[2][k] == pytest.approx(base[2][k] * (2 if k == name else 1), rel=1e-5)
+        assert doubled[2]["data"] == pytest.approx(base[2]["data"], rel=1e-6)
+    _, free = run(iterations=12, sparsity=0.0, smoothness=0.0, phase=0.0, tv=0.0)
+    _, sparse = run(iterations=12, sparsity=50.0, smoothness=0.0, phase=0.0, tv=0.0)
+    assert np.all(np.isfinite(sparse.volume))
+    assert np.mean(np.abs(sparse.volume)) < 0.8 * np.mean(np.abs(free.volume))
 
 
 @pytest.mark.parametrize("bad", [dict(iterations=0), dict(lr=-1.0), dict(sparsity=np.nan),

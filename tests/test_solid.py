@@ -195,3 +195,21 @@ def test_hidden_needs_sensors_and_bounds():
         solid.solidify(np.ones((4, 4, 4)), hidden=4)
     with pytest.raises(InputError, match="hidden"):
         solid.solidify(np.ones((4, 4, 4)), hidden=-1)
+
+
+def test_hidden_fill_on_a_grid_one_voxel_thick():
+    """A 2-D grid (one z plane: zero z spacing from the bounds) gives the same solid as the
+    same plane given a z extent of one voxel, without NaN steps: a C open away from every
+    sensor has its cavity filled."""
+    import warnings
+    vol = np.zeros((15, 15, 1))
+    vol[3:12, 3, 0] = vol[3:12, 11, 0] = vol[3, 3:12, 0] = 1.0      # the C: walls at y 3, y 11, x 3
+    sensors = np.array([[-1.0, 0.3, 0.1], [-1.0, -0.3, 0.1], [-1.0, 0.0, 0.1]])
+    flat = np.array([[0.0, 0.14], [0.0, 0.14], [0.1, 0.1]])
+    thick = np.array([[0.0, 0.14], [0.0, 0.14], [0.1, 0.11]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = solid.solidify(vol, threshold=0.5, close=0, hidden=3, sensors=sensors, bounds=flat)
+    expected = solid.solidify(vol, threshold=0.5, close=0, hidden=3, sensors=sensors, bounds=thick)
+    assert np.array_equal(got, expected)
+    assert got[4:11, 4:11, 0].all() and got.sum() > (vol > 0.5).sum()
