@@ -87,6 +87,25 @@ def test_noise_estimate_is_close_to_the_added_noise():
     assert 0.8 < sigma2 / sigma ** 2 < 1.3
 
 
+def test_noise_and_reflectivity_power_and_the_mmse_lambda_of_a_white_scene():
+    """s = w ∗ p + n with white w (variance 1) and white n (variance σ² = half the pulse's peak
+    |P|²), a stationary 300-sample record: σ², σ_w² and λ = σ²/σ_w² come out within the
+    ~10 % that a short record's spectral leakage costs (measured 1.10, 0.90, 1.22)."""
+    p = signals.named_pulse("lfm-20k", FS)
+    rng = np.random.default_rng(0)
+    n_t = 300
+    w = rng.normal(size=(64, n_t + 2 * p.size))
+    sigma2 = 0.5 * np.max(np.abs(np.fft.rfft(p, 4096)) ** 2)
+    s = dc.convolve(w, p)[:, p.size:p.size + n_t]      # no start-up: echoes before the record
+    s = s + rng.normal(scale=np.sqrt(sigma2), size=s.shape)
+    est_sigma2, est_sigma_w2 = dc.noise_and_signal_power(s, p)
+    assert 0.9 < est_sigma2 / sigma2 < 1.25
+    assert 0.8 < est_sigma_w2 / 1.0 < 1.1
+    _, info = dc.wiener(s, p)
+    assert info["lambda"] == pytest.approx(est_sigma2 / est_sigma_w2, rel=1e-12)
+    assert 0.8 < info["lambda"] / sigma2 < 1.35
+
+
 def test_wiener_sharpens_a_reflector_train_at_20db():
     s, p, truth, _ = reflector_train()
     mf = signals.matched_filter(s, p, mode="linear")
