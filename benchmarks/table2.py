@@ -834,10 +834,11 @@ def settings_from(args) -> Settings:
         overrides["threshold_sweep"] = False
     if args.shape:
         overrides["shape"] = tuple(args.shape)
-    if args.subsample:
-        raise SystemExit("--subsample: removed (the table runs as a sonarsim batch, which "
-                         "simulates each scan it reconstructs): use --angle-step A "
-                         "--height-step H for a scan of every A-th angle and H-th height")
+    if args.subsample:          # one line, exit 2 (the project's bad-input convention)
+        print("table2: --subsample: removed (the table runs as a sonarsim batch, which "
+              "simulates each scan it reconstructs): use --angle-step A --height-step H for a "
+              "scan of every A-th angle and H-th height", file=sys.stderr)
+        raise SystemExit(2)
     return replace(settings, **overrides)
 
 
