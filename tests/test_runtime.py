@@ -149,13 +149,17 @@ def test_export_and_deconvolution_import_no_heavy_libraries():
 
 
 # The libraries only some commands need: importing them was most of a command's start-up
-# (sonarsim --help 0.55 -> 0.35 CPU-s without scipy.fft, measured 2026-11-25, shared machine).
+# (measured 2026-11-25, shared machine, CPU-s: recon --help 1.05-1.3 -> 0.26-0.28, sonarsim
+# --help 0.52-0.61 -> 0.24-0.29).
 HEAVY_LIBRARIES = ("trimesh", "networkx", "scipy.spatial", "scipy.fft", "scipy.ndimage",
                    "scipy.signal")
 
 
-def test_sonarsim_help_imports_no_heavy_library():
-    r = _run("import sys\nfrom sonarsim.cli import main\n"
+@pytest.mark.parametrize("prog", ["sonarsim", "recon"])
+def test_help_imports_no_heavy_library(prog):
+    """Every command module is imported to build the parser: none may import these at the
+    top (import them where they are used)."""
+    r = _run(f"import sys\nfrom {prog}.cli import main\n"
              "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
              f"print('HEAVY', sorted(m for m in {HEAVY_LIBRARIES!r} if m in sys.modules))")
     assert r.returncode == 0, r.stderr
