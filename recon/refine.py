@@ -132,6 +132,15 @@ class RefineResult:
     settings: dict = field(default_factory=dict)
 
     @property
+    def final_misfit(self) -> float:
+        """Mean loss of the last stage over its last pass over the batches (all fitted pings
+        once; the whole stage when it is shorter): the data's verdict on the refined mesh,
+        comparable between refinements of the same pings, stages and settings."""
+        last = self.history[-1]["stage"]
+        losses = [h["loss"] for h in self.history if h["stage"] == last]
+        return float(np.mean(losses[-int(self.settings.get("batches", len(losses))):]))
+
+    @property
     def mesh(self) -> trimesh.Trimesh:
         import trimesh
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
@@ -558,4 +567,5 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
             bar.close()
     return RefineResult(vertices, faces, float(np.exp(log_albedo)) if fit_albedo else None,
                         history, {**asdict(settings), "pings": int(len(index)),
+                                  "batches": int(n_batches),
                                   "ground": ground, "oversample": k, "support": support})

@@ -339,6 +339,7 @@ def test_refine_command_writes_a_mesh_and_refuses_bad_input(ball_scan, tmp_path,
                        ([*args, "--force", "--support-keep", "1.5"], "support_keep must be in [0, 1)"),
                        ([*args, "--force", "--envelope-blur", "-0.01"], "envelope_blur must be a non-negative"),
                        ([*args, "--force", "--wrap", "-1"], "--wrap: must be >= 0"),
+                       ([*args, "--force", "--wrap", "1,x"], "--wrap: expected K[,K...]"),
                        ([*args, "--force", "--wrap", "2"], "--wrap applies to a volume"),
                        ([str(ball_scan), "--init", str(tmp_path / "none.ply"), "--out",
                          str(tmp_path / "x.ply")], "not found")):
@@ -432,3 +433,52 @@ def test_start_mesh_with_wrap_is_one_closed_genus_zero_surface():
     assert plain.euler_number != 2
     assert wrapped.is_watertight and wrapped.euler_number == 2
     assert wrapped.volume == pytest.approx(0.06 ** 3, rel=0.1)
+
+
+def test_final_misfit_is_the_last_stage_over_its_last_pass():
+    hist = [{"stage": "envelope", "loss": 9.0}] * 3 + [{"stage": "waveform", "loss": v}
+                                                      for v in (5.0, 4.0, 0.2, 0.4)]
+    result = refine.RefineResult(np.zeros((3, 3)), np.zeros((1, 3), int), None, hist, {"batches": 2})
+    assert result.final_misfit == pytest.approx(0.3)
+    result.settings["batches"] = 10                     # a stage shorter than a pass: all of it
+    assert result.final_misfit == pytest.approx(2.4)
+
+
+def test_final_misfit_ranks_the_scanned_sphere_before_a_displaced_one(mi, ball_scan):
+    """The criterion that picks among --wrap starts: with the geometry barely moving, the
+    true sphere's final misfit is far below that of the same sphere 2 cm off."""
+    from sonarsim.dataset import SonarDataset
+    ds = SonarDataset.read(ball_scan)
+    settings = refine.RefineSettings(envelope_steps=0, waveform_steps=4, lr=1e-7, edge_length=8e-3,
+                                     remesh_every=0, pings_per_batch=12, surface_spacing=3e-3)
+    misfits = []
+    for centre in ([0.0, 0.0, 0.06], [0.02, 0.0, 0.06]):
+        ball = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+        ball.vertices += centre
+        misfits.append(refine.solve(ds, ball, settings, ground=None).final_misfit)
+    assert misfits[0] < 0.3 and misfits[1] > 2 * misfits[0]
+
+
+def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, tmp_path, capsys):
+    """A porous spherical shell volume (tunnels through it) refined from --wrap 0 and 1: both
+    candidates are recorded and the written mesh is the one with the lower final misfit."""
+    import json
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+    axes = [np.linspace(-0.1, 0.1, 51), np.linspace(-0.1, 0.1, 51), np.linspace(0.0, 0.15, 38)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    r = np.sqrt(x ** 2 + y ** 2 + (z - 0.06) ** 2)
+    shell = (np.abs(r - 0.028) < 0.005) & ~(np.abs(x) < 0.003)       # a slot through the shell
+    Volume(shell.astype(np.complex64), np.array([[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.15]]),
+           "test").write(tmp_path / "shell.h5")
+    out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
+    assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
+                 "--wrap", "0,1", "--no-ground", "--envelope-steps", "1", "--waveform-steps", "2",
+                 "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
+                 "--no-progress"]) == 0
+    record = json.loads(hist.read_text())
+    cands = record["candidates"]
+    assert [c["wrap"] for c in cands] == [0.0, 1.0]
+    best = min(cands, key=lambda c: c["final_misfit"])
+    assert record["wrap"] == best["wrap"] and len(trimesh.load(out).faces) == best["faces"]
+    assert "final misfit" in capsys.readouterr().out

@@ -51,10 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--z-min", type=float, default=0.005,
                         help="volume --init: clear voxels below this height (the ground's echo), m "
                              "(default 0.005)")
-    parser.add_argument("--wrap", type=float, default=0.0, metavar="K",
+    parser.add_argument("--wrap", default="0", metavar="K[,K...]",
                         help="volume --init: seal the occupied set's tunnels and holes by a closing "
                              "with a ball of K x the range resolution c/2B of the dataset's pulse, "
-                             "then fill what it encloses (0: off; default 0; docs/refine.md)")
+                             "then fill what it encloses (0: off). Several values: refine from "
+                             "each start and keep the result with the lowest final misfit "
+                             "(default 0; docs/refine.md)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
@@ -84,26 +86,35 @@ def settings_from_args(args):
     return settings
 
 
-def initial_mesh(args, dataset):
-    """The start mesh of ``--init`` (a volume's iso-surface, wrapped at ``--wrap`` range
-    resolutions of ``dataset``, or a mesh file)."""
+def wrap_factors(text: str) -> list[float]:
+    """The ``--wrap`` values: one or more comma-separated factors >= 0."""
+    try:
+        values = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise InputError(f"--wrap: expected K[,K...] with numbers >= 0, got {text!r}") from None
+    if not values or not all(0 <= v < float("inf") for v in values):
+        raise InputError(f"--wrap: must be >= 0, got {text}")
+    return values
+
+
+def initial_meshes(args, dataset) -> list[tuple[float, object]]:
+    """[(wrap factor, start mesh)] of ``--init``: a volume's iso-surface wrapped at each
+    ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file."""
     from ..refine import range_resolution, start_mesh
     path = args.init
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
-    if not (args.wrap >= 0 and args.wrap < float("inf")):
-        raise InputError(f"--wrap: must be >= 0, got {args.wrap}")
+    factors = wrap_factors(args.wrap)
     if path.suffix.lower() == ".h5":
         from sonarsim.dataset import Volume
         vol = Volume.read(path)
-        radius = 0.0
-        if args.wrap > 0:
-            radius = args.wrap * range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
-        return start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min, wrap_radius=radius)
-    if args.wrap > 0:
+        resolution = range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
+        return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
+                               wrap_radius=k * resolution)) for k in factors]
+    if any(factors):
         raise InputError("--wrap applies to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
-    return load_mesh(path)
+    return [(0.0, load_mesh(path))]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -113,18 +124,31 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
         raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
     ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None))
-    init = initial_mesh(args, ds)
+    starts = initial_meshes(args, ds)
     index = _common.parse_slice(args.pings, ds.n_pings)
-    result = solve(ds, init, settings, ping_index=index, ground=None if args.no_ground else "dataset",
-                   progress=not args.no_progress, log=print)
+    candidates, result, chosen = [], None, None
+    for k, init in starts:
+        if len(starts) > 1:
+            print(f"start --wrap {k:g}: {len(init.faces)} faces")
+        res = solve(ds, init, settings, ping_index=index,
+                    ground=None if args.no_ground else "dataset",
+                    progress=not args.no_progress, log=print)
+        candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces)})
+        if len(starts) > 1:
+            print(f"start --wrap {k:g}: final misfit {res.final_misfit:.4f}")
+        if result is None or res.final_misfit < result.final_misfit:
+            result, chosen = res, k
     write_mesh(args.out, result.mesh)
     if args.history is not None:
         from sonarsim.atomic import atomic_path
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
+                                       "wrap": chosen, "candidates": candidates,
                                        "history": result.history}, indent=1, default=str))
     last = result.history[-1]
     albedo = "" if result.albedo is None else f", albedo {result.albedo:.3f} of the ground's"
-    print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps; "
-          f"final {last['stage']} loss {last['loss']:.4f}{albedo}")
+    picked = f" (from the start --wrap {chosen:g})" if len(starts) > 1 else ""
+    print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps{picked}; "
+          f"final {last['stage']} loss {last['loss']:.4f}, final misfit {result.final_misfit:.4f}"
+          f"{albedo}")
     return 0
