@@ -475,10 +475,19 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
                  "--wrap", "0,1", "--no-ground", "--envelope-steps", "1", "--waveform-steps", "2",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
-                 "--no-progress"]) == 0
+                 "--keep-candidates", "--no-progress"]) == 0
     record = json.loads(hist.read_text())
     cands = record["candidates"]
     assert [c["wrap"] for c in cands] == [0.0, 1.0]
     best = min(cands, key=lambda c: c["final_misfit"])
     assert record["wrap"] == best["wrap"] and len(trimesh.load(out).faces) == best["faces"]
+    # --keep-candidates: each start and its refinement, the chosen one identical to --out
+    for c in cands:
+        start = trimesh.load(tmp_path / f"refined.wrap{c['wrap']:g}.start.ply")
+        mesh = trimesh.load(tmp_path / f"refined.wrap{c['wrap']:g}.ply")
+        assert len(mesh.faces) == c["faces"] and len(start.faces) > 0
+    chosen = trimesh.load(tmp_path / f"refined.wrap{record['wrap']:g}.ply")
+    np.testing.assert_array_equal(chosen.vertices, trimesh.load(out).vertices)
+    starts = [trimesh.load(tmp_path / f"refined.wrap{k}.start.ply") for k in (0, 1)]
+    assert starts[1].euler_number == 2 and starts[0].euler_number != 2   # the wrap sealed the slot
     assert "final misfit" in capsys.readouterr().out

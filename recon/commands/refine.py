@@ -57,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "then fill what it encloses (0: off). Several values: refine from "
                              "each start and keep the result with the lowest final misfit "
                              "(default 0; docs/refine.md)")
+    parser.add_argument("--keep-candidates", action="store_true",
+                        help="also write each start and its refinement next to --out, named "
+                             "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT (e.g. to score every "
+                             "--wrap candidate)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
@@ -117,6 +121,12 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
     return [(0.0, load_mesh(path))]
 
 
+def candidate_paths(out: Path, k: float) -> tuple[Path, Path]:
+    """(start, refined) mesh paths of the ``--wrap k`` candidate for ``--keep-candidates``."""
+    stem = f"{out.stem}.wrap{k:g}"
+    return out.with_name(f"{stem}.start{out.suffix}"), out.with_name(f"{stem}{out.suffix}")
+
+
 def run(args: argparse.Namespace) -> int:
     from ..export import write_mesh
     from ..refine import solve
@@ -130,10 +140,14 @@ def run(args: argparse.Namespace) -> int:
     for k, init in starts:
         if len(starts) > 1:
             print(f"start --wrap {k:g}: {len(init.faces)} faces")
+        if args.keep_candidates:
+            write_mesh(candidate_paths(args.out, k)[0], init)
         res = solve(ds, init, settings, ping_index=index,
                     ground=None if args.no_ground else "dataset",
                     progress=not args.no_progress, log=print)
         candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces)})
+        if args.keep_candidates:
+            write_mesh(candidate_paths(args.out, k)[1], res.mesh)
         if len(starts) > 1:
             print(f"start --wrap {k:g}: final misfit {res.final_misfit:.4f}")
         if result is None or res.final_misfit < result.final_misfit:
