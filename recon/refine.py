@@ -187,18 +187,32 @@ def wrap_occupancy(occupied: np.ndarray, spacing, radius: float,
     through a porous shell, a missing face of a box) are sealed; concavities wider than that
     stay open (docs/refine.md "Wrapped starts").
     """
-    from scipy import ndimage
     from . import solid
+    occupied = np.asarray(occupied, bool)
+    if not occupied.any():
+        return occupied.copy()
+    wrapped = solid.drop_small_components(occupied | ball_closing(occupied, spacing, radius),
+                                          min_fraction)
+    return solid.fill_enclosed(wrapped, True)
+
+
+def ball_closing(occupied: np.ndarray, spacing, radius: float) -> np.ndarray:
+    """bool: the morphological closing of ``occupied`` by the Euclidean ball of ``radius`` (m;
+    voxel offsets d with |d · spacing| < radius), as ``scipy.ndimage.binary_closing`` with that
+    ball on the array padded by the ball's half-width + 1, but by two exact Euclidean distance
+    transforms (dilation: distance to the set below r; erosion: distance to the complement not
+    below r),
+    whose cost does not grow with the ball (binary_closing's grows with its volume: minutes for
+    a 6 cm ball on the Table-2 grid)."""
+    from scipy import ndimage
     spacing = np.asarray(spacing, np.float64)
     half = np.ceil(radius / spacing).astype(int)
-    axes = [np.arange(-h, h + 1) * d for h, d in zip(half, spacing)]
-    x, y, z = np.meshgrid(*axes, indexing="ij")
-    ball = x * x + y * y + z * z <= radius * radius
     pad = [(h + 1, h + 1) for h in half]
-    closed = ndimage.binary_closing(np.pad(occupied, pad), structure=ball)
-    closed = closed[tuple(slice(p[0], -p[1]) for p in pad)]
-    wrapped = solid.drop_small_components(occupied | closed, min_fraction)
-    return solid.fill_enclosed(wrapped, True)
+    grid = np.pad(np.asarray(occupied, bool), pad)
+    r = radius * (1 - 1e-9)                      # an offset at exactly the radius is left out
+    dilated = ndimage.distance_transform_edt(~grid, sampling=spacing) <= r
+    closed = ndimage.distance_transform_edt(dilated, sampling=spacing) > r
+    return closed[tuple(slice(p[0], -p[1]) for p in pad)]
 
 
 def range_resolution(pulse: np.ndarray, fs: float, sound_speed: float) -> float:

@@ -491,3 +491,25 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
     starts = [trimesh.load(tmp_path / f"refined.wrap{k}.start.ply") for k in (0, 1)]
     assert starts[1].euler_number == 2 and starts[0].euler_number != 2   # the wrap sealed the slot
     assert "final misfit" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("radius", [0.003, 0.0065, 0.009, 0.0125])
+def test_ball_closing_equals_scipy_binary_closing_with_the_ball(radius):
+    """The distance-transform closing is the binary closing by the same Euclidean ball (the
+    structure x² + y² + z² < r² on anisotropic voxels, offsets at exactly r left out), voxel
+    for voxel."""
+    from scipy import ndimage
+    rng = np.random.default_rng(3)
+    occ = ndimage.binary_dilation(rng.random((30, 26, 22)) > 0.985, iterations=2)
+    occ[0, :, :] |= rng.random((26, 22)) > 0.7                     # touching the box's face
+    spacing = np.array([0.003, 0.0025, 0.004])
+    half = np.ceil(radius / spacing).astype(int)
+    x, y, z = np.meshgrid(*[np.arange(-h, h + 1) * d for h, d in zip(half, spacing)], indexing="ij")
+    ball = x * x + y * y + z * z <= (radius * (1 - 1e-9)) ** 2      # 3 × 3 mm = 9 mm: left out
+    pad = [(h + 1, h + 1) for h in half]
+    want = ndimage.binary_closing(np.pad(occ, pad), structure=ball)
+    want = want[tuple(slice(p[0], -p[1]) for p in pad)]
+    got = refine.ball_closing(occ, spacing, radius)
+    assert want.sum() > occ.sum()                                    # the closing adds voxels
+    np.testing.assert_array_equal(got, want)
+    assert not refine.wrap_occupancy(np.zeros((5, 5, 5), bool), spacing, radius).any()
