@@ -136,8 +136,14 @@ class RefineResult:
         """Mean loss of the last stage over its last pass over the batches (all fitted pings
         once; the whole stage when it is shorter): the data's verdict on the refined mesh,
         comparable between refinements of the same pings, stages and settings."""
-        last = self.history[-1]["stage"]
-        losses = [h["loss"] for h in self.history if h["stage"] == last]
+        return self.stage_misfit(self.history[-1]["stage"])
+
+    def stage_misfit(self, stage: str) -> float | None:
+        """Mean loss of ``stage`` ('support', 'envelope', 'waveform') over its last pass over
+        the batches (the whole stage when shorter); None when the stage did not run."""
+        losses = [h["loss"] for h in self.history if h["stage"] == stage]
+        if not losses:
+            return None
         return float(np.mean(losses[-int(self.settings.get("batches", len(losses))):]))
 
     @property

@@ -440,8 +440,11 @@ def test_final_misfit_is_the_last_stage_over_its_last_pass():
                                                       for v in (5.0, 4.0, 0.2, 0.4)]
     result = refine.RefineResult(np.zeros((3, 3)), np.zeros((1, 3), int), None, hist, {"batches": 2})
     assert result.final_misfit == pytest.approx(0.3)
+    assert result.stage_misfit("envelope") == pytest.approx(9.0)
+    assert result.stage_misfit("support") is None
     result.settings["batches"] = 10                     # a stage shorter than a pass: all of it
     assert result.final_misfit == pytest.approx(2.4)
+    assert result.stage_misfit("waveform") == pytest.approx(2.4)
 
 
 def test_final_misfit_ranks_the_scanned_sphere_before_a_displaced_one(mi, ball_scan):
@@ -479,6 +482,8 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
     record = json.loads(hist.read_text())
     cands = record["candidates"]
     assert [c["wrap"] for c in cands] == [0.0, 1.0]
+    assert all(c["final_misfit"] == c["waveform_misfit"] and 0 <= c["envelope_misfit"] <= 1
+               for c in cands)
     best = min(cands, key=lambda c: c["final_misfit"])
     assert record["wrap"] == best["wrap"] and len(trimesh.load(out).faces) == best["faces"]
     # --keep-candidates: each start and its refinement, the chosen one identical to --out

@@ -145,7 +145,9 @@ def run(args: argparse.Namespace) -> int:
         res = solve(ds, init, settings, ping_index=index,
                     ground=None if args.no_ground else "dataset",
                     progress=not args.no_progress, log=print)
-        candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces)})
+        candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces),
+                           **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
+                           "albedo": res.albedo})
         if args.keep_candidates:
             write_mesh(candidate_paths(args.out, k)[1], res.mesh)
         if len(starts) > 1:
