@@ -462,9 +462,22 @@ def test_final_misfit_ranks_the_scanned_sphere_before_a_displaced_one(mi, ball_s
     assert misfits[0] < 0.3 and misfits[1] > 2 * misfits[0]
 
 
+def test_wrap_candidates_are_ranked_by_the_envelope_misfit():
+    """The envelope stage's misfit ranks the candidates, not the waveform (final) misfit; the
+    final misfit only where no envelope stage ran (the Table-2 cube: waveform misfits
+    0.92 / 0.49 / 0.63, envelope 0.54 / 0.31 / 0.23, refined Chamfer² 5.3 / 2.6 / 1.3e-4)."""
+    from recon.commands.refine import choose_candidate
+    cands = [{"wrap": w, "envelope_misfit": e, "final_misfit": f}
+             for w, e, f in ((0, 0.54, 0.92), (3, 0.31, 0.49), (6, 0.23, 0.63))]
+    assert choose_candidate(cands) == 2
+    no_envelope = [{**c, "envelope_misfit": None} for c in cands]
+    assert choose_candidate(no_envelope) == 1
+    assert choose_candidate([{**cands[1], "wrap": 1}, cands[1]]) == 0      # a tie: the first
+
+
 def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, tmp_path, capsys):
     """A porous spherical shell volume (tunnels through it) refined from --wrap 0 and 1: both
-    candidates are recorded and the written mesh is the one with the lower final misfit."""
+    candidates are recorded and the written mesh is the one with the lower envelope misfit."""
     import json
     from recon.cli import main
     from sonarsim.dataset import Volume
@@ -484,7 +497,7 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
     assert [c["wrap"] for c in cands] == [0.0, 1.0]
     assert all(c["final_misfit"] == c["waveform_misfit"] and 0 <= c["envelope_misfit"] <= 1
                for c in cands)
-    best = min(cands, key=lambda c: c["final_misfit"])
+    best = min(cands, key=lambda c: c["envelope_misfit"])
     assert record["wrap"] == best["wrap"] and len(trimesh.load(out).faces) == best["faces"]
     # --keep-candidates: each start and its refinement, the chosen one identical to --out
     for c in cands:
