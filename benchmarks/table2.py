@@ -51,6 +51,7 @@ from typing import Callable
 
 import numpy as np
 
+from recon.solver.settings import PRESETS
 from sonarsim import identity
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -157,8 +158,10 @@ class Settings:
 
 
 SIZES = {
+    # the reference's size; the solvers' steps are their frozen presets' (one home)
     "default": Settings(angle_step=1, height_step=1, paths_per_pose=None, shape=(125, 125, 94),
-                        gd_iterations=1000, nbp_iterations=1000),
+                        gd_iterations=PRESETS["gd"]["iterations"],
+                        nbp_iterations=PRESETS["nbp"]["iterations"]),
     "quick": Settings(angle_step=20, height_step=15, paths_per_pose=300, shape=(25, 25, 19),
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
                       view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False,

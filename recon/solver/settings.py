@@ -214,7 +214,9 @@ PRESETS = {
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
                reg_start=200, **SOLID, solid_threshold=0.5),
-    "nbp": dict(NETWORK_DEFAULTS, iterations=1000, pings_per_iteration=5, pings_per_chunk=5,
+    # 300 steps after the 300-step BP warm start (1 000 until 2026-11-27: longer fits thin the
+    # field and the solid loses; docs/reconstruction.md "Fit length")
+    "nbp": dict(NETWORK_DEFAULTS, iterations=300, pings_per_iteration=5, pings_per_chunk=5,
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
                 hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
                 hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
