@@ -97,7 +97,7 @@ def wrap_factors(text: str) -> list[float]:
         values = [float(v) for v in str(text).split(",")]
     except ValueError:
         raise InputError(f"--wrap: expected K[,K...] with numbers >= 0, got {text!r}") from None
-    if not values or not all(0 <= v < float("inf") for v in values):
+    if not all(0 <= v < float("inf") for v in values):
         raise InputError(f"--wrap: must be >= 0, got {text}")
     return values
 
