@@ -55,13 +55,11 @@ def ring(n, radius=0.5, height=0.25):
 
 
 def batch_scene(mi, n, bins, start, radius=0.5):
+    from sonarsim.plugins import sonar
     scene = bunny_scene(mi, 1, bins=bins, start=start, integrator=PISTON)
     params = mi.traverse(scene)
     tx, look = ring(n, radius)
-    for key, value in (("tx_origin", tx), ("rx_origin", tx), ("tx_boresight", look),
-                       ("rx_boresight", look)):
-        params[f"sensor.{key}"] = mi.Point3f(*(mi.Float(value[:, i].astype(np.float32))
-                                              for i in range(3)))
+    sonar.set_poses(params, tx.astype(np.float32), look.astype(np.float32))
     params.update()
     return scene, params
 

@@ -39,6 +39,7 @@ def build(n_poses: int, bounces: int, spacing: float):
     from sonarsim.render import path_window
     from sonarsim.scene import load_scene
     mi = runtime.mitsuba()
+    from sonarsim.plugins import sonar   # after the variant is set
     spec = load_scene("cube")
     poses = trajectory("cylindrical", box=spec.box)
     index = np.linspace(0, len(poses) - 1, n_poses).round().astype(int)
@@ -58,10 +59,7 @@ def build(n_poses: int, bounces: int, spacing: float):
                    "to_world": mi.ScalarTransform4f().scale([0.2, 0.2, 1.0]),
                    "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 1.0}}}})
     params = mi.traverse(scene)
-    for key, values in (("tx_origin", poses.tx), ("rx_origin", poses.rx),
-                        ("tx_boresight", poses.tx_boresight),
-                        ("rx_boresight", poses.rx_boresight)):
-        params[f"sensor.{key}"] = mi.Point3f(*(mi.Float(values[:, i]) for i in range(3)))
+    sonar.set_poses(params, poses.tx, poses.tx_boresight, poses.rx, poses.rx_boresight)
     params.update()
     return mi, scene, params
 

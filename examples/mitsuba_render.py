@@ -39,6 +39,7 @@ def part1(mi):
 
 
 def part2(mi, steps: int, true_offset=(0.004, -0.003, 0.002)):
+    from sonarsim.plugins import sonar   # after the variant is set (runtime.mitsuba())
     import drjit as dr
     angles = np.radians([0.0, 60.0, 120.0, 180.0, 240.0, 300.0])
     tx = np.stack([0.5 * np.cos(angles), 0.5 * np.sin(angles), np.full(6, 0.25)], axis=1)
@@ -52,9 +53,7 @@ def part2(mi, steps: int, true_offset=(0.004, -0.003, 0.002)):
         "target": {"type": "obj", "filename": str(data.path("bunny.obj")),
                    "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}}}})
     params = mi.traverse(scene)
-    for key, value in (("tx_origin", tx), ("rx_origin", tx), ("tx_boresight", look),
-                       ("rx_boresight", look)):           # a batch sensor: 6 poses
-        params[f"sensor.{key}"] = mi.Point3f(*(mi.Float(value[:, i]) for i in range(3)))
+    sonar.set_poses(params, tx, look)                     # a batch sensor: 6 monostatic poses
     rest = np.array(params["target.vertex_positions"]).reshape(-1, 3)
 
     def place(offset):

@@ -16,7 +16,8 @@ TX-cone paths per pose (used by ``bounce1='cone'`` only).
 Several poses: a scene may hold several ``sonar`` sensors (``mi.render(scene, sensor=i)``),
 or one sensor may hold N poses (batch form): set its parameters to Dr.Jit vectors of width
 N (each of width N or 1, which is broadcast), e.g.
-``params['sensor.tx_origin'] = mi.Point3f(x, y, z)``; ``params.update()``; ``mi.render``
+``params['sensor.tx_origin'] = mi.Point3f(x, y, z)``, or all four from [N, 3] arrays with
+:func:`set_poses`; ``params.update()``; ``mi.render``
 then returns (N, B, T), pose i's histograms equal to those of a one-pose sensor with the
 same seed and pose offset i (see ``sonar_transient.render_transients``).
 
@@ -113,3 +114,18 @@ class SonarSensor(mi.Sensor):
 
 
 mi.register_sensor(PLUGIN_NAME, lambda props: SonarSensor(props))
+
+def set_poses(params, tx, tx_boresight, rx=None, rx_boresight=None, *, sensor: str = "sensor"):
+    """Load N poses into the batch form of the ``sonar`` sensor ``sensor`` of ``params``.
+
+    ``params``: ``mi.traverse(scene)``. ``tx``, ``rx``: [N, 3] positions (m, world frame);
+    ``tx_boresight``, ``rx_boresight``: [N, 3] directions (normalised by the sensor); any
+    array indexable as ``a[:, i]`` (NumPy). ``rx`` defaults to ``tx`` (monostatic) and
+    ``rx_boresight`` to ``tx_boresight``. Sets the four parameters to ``Point3f`` of width N;
+    the caller calls ``params.update()`` (after its other changes).
+    """
+    rx = tx if rx is None else rx
+    rx_boresight = tx_boresight if rx_boresight is None else rx_boresight
+    for name, value in zip(_VECTORS, (tx, rx, tx_boresight, rx_boresight)):
+        params[f"{sensor}.{name}"] = mi.Point3f(*(mi.Float(value[:, i]) for i in range(3)))
+

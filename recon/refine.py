@@ -409,10 +409,10 @@ class RenderedScene:
         """Histograms [n, bounces, bins] (TensorXf, differentiable) of pings ``index``;
         ``albedo``: Float of width 1 (all patches) or K (one per patch)."""
         mi, dr = self.mi, self.dr
-        vec = lambda a: mi.Point3f(*(mi.Float(a[index, i].astype(np.float32)) for i in range(3)))
+        from sonarsim.plugins import sonar
         p = self.params
-        p["sensor.tx_origin"], p["sensor.rx_origin"] = vec(self.tx), vec(self.rx)
-        p["sensor.tx_boresight"], p["sensor.rx_boresight"] = vec(self.tx_dir), vec(self.rx_dir)
+        f32 = lambda a: a[index].astype(np.float32)
+        sonar.set_poses(p, f32(self.tx), f32(self.tx_dir), f32(self.rx), f32(self.rx_dir))
         per_patch = dr.width(albedo) > 1
         for patch, key_v, idx, key_albedo in self._patches:
             p[key_v] = dr.gather(mi.Float, vertices, idx)

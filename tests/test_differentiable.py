@@ -131,17 +131,24 @@ def test_batch_sensor_and_several_sensors(mi, icosphere):
                           "sensor": sonar(tx[0], look[0], start=0.6, bins=200),
                           "other": sonar(tx[2], look[2], start=0.6, bins=200),
                           "target": target})
+    from sonarsim.plugins import sonar as sonar_plugin
     params = mi.traverse(scene)
-    params["sensor.tx_origin"] = mi.Point3f(*(mi.Float(tx[:, i]) for i in range(3)))
-    params["sensor.rx_origin"] = mi.Point3f(*(mi.Float(tx[:, i]) for i in range(3)))
-    params["sensor.tx_boresight"] = mi.Point3f(*(mi.Float(look[:, i]) for i in range(3)))
-    params["sensor.rx_boresight"] = mi.Point3f(*(mi.Float(look[:, i]) for i in range(3)))
+    sonar_plugin.set_poses(params, tx, look)             # monostatic: rx = tx, same boresight
     params.update()
     batch = mi.render(scene, seed=5).numpy()
     assert batch.shape == (3, 1, 200)
     ref = scene.integrator().render_transients(scene, tx, tx, look, look, 0.6, WIDTH, 200, 4, 5)
     assert np.count_nonzero(ref) > 100
     np.testing.assert_array_equal(batch, ref)
+    rx, rx_look = tx + [0.0, 0.04, 0.0], look + [0.0, 0.0, 0.1]     # bistatic: every vector its own
+    sonar_plugin.set_poses(params, tx, look, rx, rx_look)
+    params.update()
+    bistatic = scene.integrator().render_transients(scene, tx, rx, look, rx_look, 0.6, WIDTH,
+                                                    200, 4, 5)
+    assert not np.array_equal(bistatic, ref)
+    np.testing.assert_array_equal(mi.render(scene, seed=5).numpy(), bistatic)
+    sonar_plugin.set_poses(params, tx, look)
+    params.update()
     other = mi.render(scene, sensor=1, seed=5).numpy()
     single = scene.integrator().render_transients(scene, tx[2], tx[2], look[2], look[2], 0.6,
                                                    WIDTH, 200, 4, 5)
