@@ -115,6 +115,7 @@ class SonarSensor(mi.Sensor):
 
 mi.register_sensor(PLUGIN_NAME, lambda props: SonarSensor(props))
 
+
 def set_poses(params, tx, tx_boresight, rx=None, rx_boresight=None, *, sensor: str = "sensor"):
     """Load N poses into the batch form of the ``sonar`` sensor ``sensor`` of ``params``.
 
@@ -128,4 +129,3 @@ def set_poses(params, tx, tx_boresight, rx=None, rx_boresight=None, *, sensor: s
     rx_boresight = tx_boresight if rx_boresight is None else rx_boresight
     for name, value in zip(_VECTORS, (tx, rx, tx_boresight, rx_boresight)):
         params[f"{sensor}.{name}"] = mi.Point3f(*(mi.Float(value[:, i]) for i in range(3)))
-

@@ -395,8 +395,11 @@ class RenderedScene:
         self._patches = [(p, f"target{p}.vertex_positions", idx,
                           next(k for k in keys if k.startswith(f"target{p}.bsdf")
                                and k.endswith("reflectance.value"))) for p, idx in patches]
-        self.tx, self.rx = np.asarray(dataset.tx), np.asarray(dataset.rx)
-        self.tx_dir, self.rx_dir = np.asarray(dataset.boresight), np.asarray(dataset.receiver_boresight)
+        # every ping's four vectors, float32 once (the renderer's precision); render() slices them
+        self._poses = [np.asarray(a, dtype=np.float32) for a in
+                       (dataset.tx, dataset.boresight, dataset.rx, dataset.receiver_boresight)]
+        from sonarsim.plugins import sonar   # after the variant is set (runtime.mitsuba())
+        self._set_poses = sonar.set_poses
 
     @property
     def vertices(self):
@@ -409,10 +412,8 @@ class RenderedScene:
         """Histograms [n, bounces, bins] (TensorXf, differentiable) of pings ``index``;
         ``albedo``: Float of width 1 (all patches) or K (one per patch)."""
         mi, dr = self.mi, self.dr
-        from sonarsim.plugins import sonar
         p = self.params
-        f32 = lambda a: a[index].astype(np.float32)
-        sonar.set_poses(p, f32(self.tx), f32(self.tx_dir), f32(self.rx), f32(self.rx_dir))
+        self._set_poses(p, *(a[index] for a in self._poses))
         per_patch = dr.width(albedo) > 1
         for patch, key_v, idx, key_albedo in self._patches:
             p[key_v] = dr.gather(mi.Float, vertices, idx)
