@@ -244,12 +244,68 @@ def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Tr
     return trimesh.util.concatenate([p for p in parts if len(p.faces) >= min_fraction * biggest])
 
 
+def split_pinched_vertices(vertices: np.ndarray, faces: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with every vertex where separate fans of faces meet ("bow-tie" vertices, e.g.
+    left where faces were removed around it) duplicated once per fan, so that each vertex has
+    one fan (edge-connected corners). Positions are unchanged; unused vertices are dropped."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    f = np.asarray(faces, np.int64)
+    n_f = len(f)
+    if n_f == 0:
+        return np.asarray(vertices, np.float64)[:0], f
+    # half-edges (a → b) of face i; corner (i, k) is vertex f[i, k]
+    a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+    face, k = np.repeat(np.arange(n_f), 3), np.tile(np.arange(3), n_f)
+    corner_a, corner_b = 3 * face + k, 3 * face + (k + 1) % 3
+    # an edge {a, b} shared by two faces joins their corners at a and at b
+    key = np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    same = np.flatnonzero(key[order][1:] == key[order][:-1])
+    i, j = order[same], order[same + 1]
+    # corner of half-edge i at vertex a[i], and the corner of j at the same vertex
+    ci_a = corner_a[i]
+    cj_a = np.where(a[j] == a[i], corner_a[j], corner_b[j])
+    ci_b = corner_b[i]
+    cj_b = np.where(a[j] == a[i], corner_b[j], corner_a[j])
+    rows, cols = np.concatenate([ci_a, ci_b]), np.concatenate([cj_a, cj_b])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_f, 3 * n_f))
+    _, label = connected_components(graph, directed=False)
+    new_ids, first = np.unique(label, return_index=True)[0:2]
+    remap = np.searchsorted(new_ids, label)
+    return (np.asarray(vertices, np.float64)[f.ravel()[first]],
+            remap.reshape(-1, 3).astype(np.int64))
+
+
+def manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without the faces of its non-manifold edges (edges of more than two faces:
+    ``remesh_botsch`` can leave a few, and refuses them as input) and with its pinched vertices
+    split (:func:`split_pinched_vertices`): an edge-manifold mesh with a few small holes."""
+    f = np.asarray(faces, np.int64)
+    if len(f):
+        edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+        _, inverse, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+        bad = (count[inverse.ravel()] > 2).reshape(-1, 3).any(axis=1)
+        f = f[~bad]
+    return split_pinched_vertices(vertices, f)
+
+
 def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
            ) -> tuple[np.ndarray, np.ndarray]:
-    """Isotropic remeshing to ``edge_length`` (gpytoolbox.remesh_botsch, 5 iterations)."""
+    """Isotropic remeshing to ``edge_length`` (gpytoolbox.remesh_botsch, 5 iterations) of
+    the :func:`manifold` part of the mesh (remesh_botsch refuses non-manifold input, and its
+    own output, from which later stages start, may have a few non-manifold edges)."""
     from gpytoolbox import remesh_botsch
-    v, f = remesh_botsch(np.asarray(vertices, np.float64), np.asarray(faces, np.int32),
-                         i=5, h=float(edge_length), project=True)
+    vertices, faces = manifold(vertices, faces)
+    if len(faces) == 0:
+        raise InputError("cannot remesh the surface: no face is left on a manifold part")
+    try:
+        v, f = remesh_botsch(np.asarray(vertices, np.float64), np.asarray(faces, np.int32),
+                             i=5, h=float(edge_length), project=True)
+    except ValueError as exc:
+        raise InputError(f"cannot remesh the surface ({exc}): it has edges shared by more "
+                         "than two faces") from None
     return np.asarray(v, np.float64), np.asarray(f, np.int64)
 
 

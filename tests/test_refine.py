@@ -531,3 +531,38 @@ def test_ball_closing_equals_scipy_binary_closing_with_the_ball(radius):
     assert want.sum() > occ.sum()                                    # the closing adds voxels
     np.testing.assert_array_equal(got, want)
     assert not refine.wrap_occupancy(np.zeros((5, 5, 5), bool), spacing, radius).any()
+
+
+def _bow_tie():
+    """Two fans of two triangles that meet at vertex 0 only (a pinched vertex)."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.3], [-1, 0, 0], [0, -1, 0],
+                  [-1, -1, 0.3]], float)
+    return v, np.array([[0, 1, 3], [0, 3, 2], [0, 4, 6], [0, 6, 5]])
+
+
+def test_split_pinched_vertices_gives_each_fan_its_own_vertex():
+    v, f = _bow_tie()
+    v2, f2 = refine.split_pinched_vertices(v, f)
+    assert len(v2) == len(v) + 1
+    np.testing.assert_array_equal(v2[f2], v[f])                  # the same triangles
+    assert not set(f2[:2].ravel()) & set(f2[2:].ravel())         # the fans share no vertex
+    sphere = trimesh.creation.icosphere(2)                       # nothing pinched: unchanged
+    v3, f3 = refine.split_pinched_vertices(sphere.vertices, sphere.faces)
+    assert len(v3) == len(sphere.vertices)
+    np.testing.assert_array_equal(v3[f3], sphere.vertices[sphere.faces])
+
+
+def test_remesh_takes_a_surface_with_a_fin():
+    """An edge of three faces (a fin on a sphere, as remesh_botsch's own output can have):
+    gpytoolbox refuses it; :func:`refine.remesh` drops the faces of that edge and remeshes."""
+    from gpytoolbox import non_manifold_edges, remesh_botsch
+    sphere = trimesh.creation.icosphere(3)
+    v = np.vstack([sphere.vertices, sphere.vertices[sphere.faces[0, :2]].mean(0) * 1.3])
+    f = np.vstack([sphere.faces, [[*sphere.faces[0, :2], len(v) - 1]]])
+    assert len(non_manifold_edges(f.astype(np.int32))) == 1
+    with pytest.raises(ValueError, match="non-manifold"):
+        remesh_botsch(v, f.astype(np.int32), i=1, h=0.2, project=True)
+    v2, f2 = refine.manifold(v, f)
+    assert len(f2) == len(f) - 3 and len(non_manifold_edges(f2.astype(np.int32))) == 0
+    vr, fr = refine.remesh(v, f, 0.2)
+    assert len(fr) > 100 and len(non_manifold_edges(fr.astype(np.int32))) == 0
