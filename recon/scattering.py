@@ -37,8 +37,12 @@ nothing else.
 
 The warm start fits σ(x, ω) at uniformly random directions to the scaled backprojection:
 its optimum is c_00 = the backprojection and c_lm = 0 for l ≥ 1 (Parseval), so the
-optimisation starts isotropic. SH-SAS raises the active degree during training and has an
-optional L1 prior on the l ≥ 1 coefficients; neither is used here.
+optimisation starts isotropic. Two options of SH-SAS keep the field near isotropic (both off
+by default; measured in docs/scattering.md): ``sh_start`` (the l ≥ 1 coefficients enter the
+model from that iteration on; before it σ = c_00, the warm start included: SH-SAS raises the
+active degree during training) and ``sh_sparsity`` (an L1 prior, weight × the mean over the
+samples of Σ_{l≥1}|c_lm|, from ``reg_start`` as the other priors: SH-SAS's optional prior on
+the higher-order coefficients).
 """
 from __future__ import annotations
 
@@ -74,11 +78,15 @@ def check_settings(settings) -> None:
     representation and the incoherent ablation."""
     degree = parse_scattering(settings.scattering)
     if degree is None:
+        if getattr(settings, "sh_start", 0) > 0 or getattr(settings, "sh_sparsity", 0.0) > 0:
+            raise InputError("sh_start / sh_sparsity need --scattering sh:L (L >= 1)")
         return
     if getattr(settings, "occupancy", False):
         raise InputError("scattering: sh:L is not available with --occupancy")
     if getattr(settings, "incoherent", False):
         raise InputError("scattering: sh:L needs a coherent field, not --incoherent")
+    if degree == 0 and (settings.sh_start > 0 or settings.sh_sparsity > 0):
+        raise InputError("sh_start / sh_sparsity act on the l >= 1 coefficients: use sh:L with L >= 1")
 
 
 def n_coefficients(degree: int) -> int:
@@ -116,6 +124,13 @@ class ShNetworkScene(NetworkScene):
         self.degree = int(degree)
         super().__init__(grid, settings, incoherent=False)
         self._warm_calls = itertools.count()
+        self.sh_start = int(getattr(settings, "sh_start", 0))
+        self.directions_on = self.sh_start == 0
+
+    def at_iteration(self, iteration: int) -> None:
+        """Called by the solver before each iteration: the l ≥ 1 terms enter the model from
+        iteration ``sh_start`` on."""
+        self.directions_on = iteration >= self.sh_start
 
     def n_outputs(self, incoherent: bool = False) -> int:
         return 2 * n_coefficients(self.degree)
@@ -130,8 +145,10 @@ class ShNetworkScene(NetworkScene):
     def combine(self, coeffs, directions):
         """σ(x, ω) = Σ c_lm Ỹ_lm(ω): (re, im) Float from :meth:`coefficients`' list and unit
         look ``directions`` Array3f (one per lane)."""
-        basis = sh_basis(self.m, directions, self.degree)
         re, im = coeffs[0]
+        if not self.directions_on:
+            return re, im
+        basis = sh_basis(self.m, directions, self.degree)
         for (c_re, c_im), b in zip(coeffs[1:], basis[1:]):
             re = re + b * c_re
             im = im + b * c_im
@@ -146,7 +163,7 @@ class ShNetworkScene(NetworkScene):
         warm start's fit then has c_00 = the backprojection, c_lm = 0 (l ≥ 1) as optimum. For
         L = 0 exactly c_00 (isotropic NBP's warm start)."""
         import drjit as dr
-        if self.degree == 0:
+        if self.degree == 0 or not self.directions_on:
             return self.evaluate(params, points)
         from .solver.priors import random_directions
         dirs = random_directions(self.m, dr.width(points[0]), 0x5EED0000 + next(self._warm_calls))
@@ -173,6 +190,10 @@ class BoundShNetwork(BoundNetwork):
 
     directional = True
 
+    def __init__(self, scene: ShNetworkScene, params: dict):
+        super().__init__(scene, params)
+        self.cache = {}
+
     def scatter_toward(self, points, directions, with_gradient: bool):
         """(σ_re, σ_im, c00_re, c00_im, ∇|c_00| or None) at ``points`` seen from unit look
         ``directions``, from one network evaluation. The gradient (for the Lambertian normals)
@@ -189,6 +210,8 @@ class BoundShNetwork(BoundNetwork):
         else:
             coeffs, grad = scene.coefficients(self.params, points), None
         re, im = scene.combine(coeffs, directions)
+        if scene.directions_on:
+            self.cache["sh"] = coeffs[1:]       # the l >= 1 coefficients, for sh_sparsity
         return re, im, coeffs[0][0], coeffs[0][1], grad
 
 

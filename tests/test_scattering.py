@@ -297,3 +297,71 @@ def test_cli_sh_run_exports_c00(point_target_scan, tmp_path, capsys):
     vol = Volume.read(out)
     assert vol.params["scattering"] == "sh:1" and vol.shape == (9, 9, 9)
     assert np.abs(vol.volume).max() > 0 and np.all(np.isfinite(vol.volume))
+
+
+def _sh_scene(**overrides):
+    """A small sh:1 scene of the solver with SH-SAS's options, its random parameters, and
+    the lobe geometry's samples (inside the scene's box)."""
+    from recon import solver
+    grid = Grid(np.array([[-0.04, 0.04], [-0.04, 0.04], [0.01, 0.09]]), (9, 9, 9))
+    settings = solver.settings_for("nbp", network=True, scattering="sh:1", **SMALL_NET,
+                                   **overrides)
+    scene = solver.make_scene(grid, settings, network=True)
+    rng = np.random.default_rng(4)
+    p = scene.initial(rng)
+    p["grid"] = rng.uniform(-1, 1, p["grid"].shape).astype(np.float32)   # every c_lm non-zero
+    params = {k: scene.m.Float(v) for k, v in p.items()}
+    samples = F.EllipsoidSamples(_lobe_geometry(), F.cone_directions(70, 20.0))
+    return scene, params, settings, samples
+
+
+def test_sh_start_keeps_the_field_isotropic_until_that_iteration():
+    """Before ``sh_start`` σ(x, ω) = c_00(x) from every direction (and the warm start fits
+    c_00); from it on the l = 1 terms make σ depend on ω."""
+    from recon._jit import jit
+    m = jit()
+    scene, params, _, _ = _sh_scene(sh_start=5)
+    pts = m.Array3f(m.Float([0.01, -0.02]), m.Float([0.0, 0.01]), m.Float([0.05, 0.03]))
+    up, side = m.Array3f(0.0, 0.0, 1.0), m.Array3f(1.0, 0.0, 0.0)
+    scene.at_iteration(4)
+    a, b = np.asarray(scene.scatter(params, pts, up)[0]), np.asarray(scene.scatter(params, pts, side)[0])
+    c00 = np.asarray(scene.evaluate(params, pts)[0])
+    np.testing.assert_array_equal(a, c00)
+    np.testing.assert_array_equal(b, c00)
+    np.testing.assert_array_equal(np.asarray(scene.warm_values(params, pts)[0]), c00)
+    scene.at_iteration(5)
+    a, b = np.asarray(scene.scatter(params, pts, up)[0]), np.asarray(scene.scatter(params, pts, side)[0])
+    assert np.abs(a - b).max() > 1e-3 * np.abs(c00).max()
+
+
+def test_sh_sparsity_is_the_mean_l1_of_the_higher_coefficients():
+    """The prior term equals weight × the mean over the valid samples of Σ_{l≥1}|c_lm|,
+    computed here in NumPy from the coefficients; without directions (before sh_start) the
+    term is absent."""
+    from recon._jit import jit
+    from recon.solver.priors import loss_terms
+    m = jit()
+    scene, params, settings, samples = _sh_scene(sh_sparsity=0.3, reg_start=0)
+    field = scene.bind(params)
+    y_re, y_im, s_re, s_im = F.render(field, samples, lambertian_eps=1e-3, with_sigma=True)
+    zero = m.Float(np.zeros(len(np.asarray(y_re)), np.float32))
+    terms = loss_terms(m, field, samples, s_re, s_im, y_re, y_im, zero, zero, settings,
+                       scene.h, True, None)
+    coeffs = scene.coefficients(params, samples.points)
+    l1 = sum(np.hypot(np.asarray(re, np.float64), np.asarray(im, np.float64)) for re, im in coeffs[1:])
+    valid = np.asarray(samples.valid, bool)
+    assert valid.sum() > 100 and l1[valid].max() > 0
+    np.testing.assert_allclose(float(terms["sh_sparsity"][0]), 0.3 * l1[valid].mean(), rtol=1e-4)
+    scene_off, params_off, settings_off, _ = _sh_scene(sh_sparsity=0.3, reg_start=0, sh_start=9)
+    field_off = scene_off.bind(params_off)
+    out = F.render(field_off, samples, lambertian_eps=1e-3, with_sigma=True)
+    assert "sh_sparsity" not in loss_terms(m, field_off, samples, *out[2:], *out[:2], zero, zero,
+                                           settings_off, scene_off.h, True, None)
+
+
+@pytest.mark.parametrize("options", [dict(sh_start=10), dict(sh_sparsity=0.1),
+                                     dict(scattering="sh:0", sh_sparsity=0.1)])
+def test_sh_options_need_a_directional_field(options):
+    from recon import solver
+    with pytest.raises(InputError, match="sh_start / sh_sparsity"):
+        solver.settings_for("nbp", network=True, **options)

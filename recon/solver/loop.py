@@ -152,7 +152,10 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
                        leave=False)
     tick = timer if timer is not None else _no_timer
     tick("setup")
+    at_iteration = getattr(scene, "at_iteration", None)
     for it in range(start, settings.iterations):
+        if at_iteration is not None:
+            at_iteration(it)
         pings, bins, roll = sampler.draw()
         reg_on = it >= settings.reg_start
         need_u = reg_on and (settings.smoothness > 0 or settings.phase > 0

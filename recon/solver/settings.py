@@ -57,6 +57,8 @@ class SolverSettings(NetworkSettings):
     warm_start_lr: float = 1e-2
     autocorrelation_taps: int = 0
     scattering: str = "isotropic"
+    sh_sparsity: float = 0.0
+    sh_start: int = 0
     # the exported volume (both representations): the fitted field, or its solid (recon.solid)
     output: str = "solid"
     solid_threshold: float = 0.5
@@ -69,7 +71,8 @@ class SolverSettings(NetworkSettings):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
-        for name in ("pings_per_chunk", "warm_start_iterations", "reg_start", "autocorrelation_taps"):
+        for name in ("pings_per_chunk", "warm_start_iterations", "reg_start", "autocorrelation_taps",
+                     "sh_start"):
             if int(getattr(self, name)) < 0:
                 raise InputError(f"{name}: must be >= 0, got {getattr(self, name)}")
         self.validate_network()
@@ -79,7 +82,7 @@ class SolverSettings(NetworkSettings):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
         for name in ("sparsity", "smoothness", "phase", "tv", "surface_tv", "occlusion_scale",
-                     "adam_epsilon",
+                     "adam_epsilon", "sh_sparsity",
                      "sampling_uniformity", "init_scale", "smooth_delta"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -105,7 +108,7 @@ CHECKPOINT_EVERY = 100
 # Fields that only the network reads (neither an option of recon gd nor a parameter of its
 # volumes).
 NETWORK_ONLY = ("hash_", "mlp_", "warm_start", "occupancy", "surface_tv", "solid_floor",
-                "scattering")
+                "scattering", "sh_")
 
 
 def applies_to(name: str, network: bool) -> bool:
@@ -171,6 +174,11 @@ HELP = {
     "scattering": "NBP: 'isotropic' (σ(x)) or 'sh:L' (L = 0..4): the network outputs complex "
                   "spherical-harmonic coefficients and σ depends on the look direction "
                   "(SH-SAS, docs/scattering.md); the exported volume is c_00, the direction average",
+    "sh_sparsity": "NBP sh:L: weight of an L1 prior on the direction-dependent coefficients, "
+                   "mean over the samples of Σ_{l≥1}|c_lm| (keeps the field near isotropic; "
+                   "applies from reg_start, as the other priors)",
+    "sh_start": "NBP sh:L: iteration from which the l ≥ 1 coefficients enter the model; before "
+                "it the field is isotropic (c_00 only; SH-SAS raises the degree during training)",
     "output": "exported volume: 'field' (the fitted complex field) or 'solid' (its solid "
               "occupancy, 1 inside and 0 outside: recon.solid.solidify, docs/reconstruction.md)",
     "solid_threshold": "solid: occupied where |σ|/max|σ| exceeds this",
