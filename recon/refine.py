@@ -28,6 +28,10 @@ the rendered waveforms match the dataset's:
   the albedos are fitted to the envelopes with the geometry fixed and the patches the data
   leave dark (below ``support_keep`` × the median) are removed: floaters and smears of the
   start volume, which moving vertices cannot delete.
+* **Grown start** (optional, :func:`grow_occupancy`): the start's occupied set is extended
+  by the connected parts of a second volume of the same scan (its backprojection): thin
+  parts that NBP misses but the data images; the support stage then prunes what the data
+  does not support.
 * **Pings.** The chosen pings are split into interleaved batches (each spans the aperture);
   one batch per step.
 
@@ -155,11 +159,14 @@ class RefineResult:
 # ------------------------------------------------------------------------ the start mesh
 
 def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
-               min_component: float = 0.05, wrap_radius: float = 0.0) -> trimesh.Trimesh:
+               min_component: float = 0.05, wrap_radius: float = 0.0,
+               grow: np.ndarray | None = None, grow_threshold: float = 0.2) -> trimesh.Trimesh:
     """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
 
-    With ``wrap_radius`` > 0 (m) the occupied set (normalised |volume| > ``threshold``) is
-    first wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
+    With ``grow`` (a second volume of the same scan on the same grid, e.g. its
+    backprojection) the occupied set (normalised |volume| > ``threshold``) is first grown by
+    :func:`grow_occupancy` (``grow_threshold``, ``z_min``). With ``wrap_radius`` > 0 (m) it is
+    then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
     shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
     surface closes above the ground; components with fewer than ``min_component`` × the
     largest's faces are dropped (isolated blobs of the volume).
@@ -168,17 +175,46 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
     vol = np.array(volume, copy=True)
     if not (np.isfinite(wrap_radius) and wrap_radius >= 0):
         raise InputError(f"wrap radius: must be >= 0 m, got {wrap_radius}")
-    if wrap_radius > 0:
-        b = np.asarray(bounds, np.float64)
-        spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
-        occupied = normalized_magnitude(vol, "minmax") > threshold
-        vol, threshold = wrap_occupancy(occupied, spacing, wrap_radius).astype(np.float32), 0.5
     z = voxel_axes(bounds, vol.shape)[2]
+    if grow is not None or wrap_radius > 0:
+        occupied = normalized_magnitude(vol, "minmax") > threshold
+        if grow is not None:
+            if np.shape(grow) != vol.shape:
+                raise InputError(f"the grow volume's grid {np.shape(grow)} differs from the "
+                                 f"start's {vol.shape}")
+            occupied = grow_occupancy(occupied, normalized_magnitude(grow, "minmax"),
+                                      grow_threshold, z >= z_min)
+        if wrap_radius > 0:
+            b = np.asarray(bounds, np.float64)
+            spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
+            occupied = wrap_occupancy(occupied, spacing, wrap_radius)
+        vol, threshold = occupied.astype(np.float32), 0.5
     vol[:, :, z < z_min] = 0
     mesh = mesh_from_volume(vol, bounds, threshold)
     if len(mesh.faces) == 0:
         raise InputError(f"the volume has nothing above the threshold {threshold} over z >= {z_min} m")
     return largest_components(mesh, min_component)
+
+
+def grow_occupancy(occupied: np.ndarray, other: np.ndarray, threshold: float,
+                   allowed_z: np.ndarray | None = None) -> np.ndarray:
+    """bool [nx, ny, nz]: ``occupied`` ∪ the face-connected parts of {``other`` ≥ ``threshold``}
+    (``other``: a normalised |volume| in [0, 1] on the same grid; restricted to the z planes
+    ``allowed_z`` [nz]) outside ``occupied`` that touch it (face-adjacent voxels).
+
+    The use (``recon refine --grow``): a reconstruction with a strong model (NBP) can miss a
+    thin part that the data's backprojection still images (the Table-2 bunny's ear tips,
+    docs/refine.md); its connected surroundings are added to the start, and the support stage
+    then keeps the patches that the data supports.
+    """
+    from scipy import ndimage
+    occupied = np.asarray(occupied, bool)
+    candidate = (np.asarray(other) >= threshold) & ~occupied
+    if allowed_z is not None:
+        candidate &= np.asarray(allowed_z, bool)[None, None, :]
+    labels, _ = ndimage.label(candidate)
+    touching = np.unique(labels[ndimage.binary_dilation(occupied) & candidate])
+    return occupied | np.isin(labels, touching[touching > 0])
 
 
 def wrap_occupancy(occupied: np.ndarray, spacing, radius: float,

@@ -340,7 +340,8 @@ def test_refine_command_writes_a_mesh_and_refuses_bad_input(ball_scan, tmp_path,
                        ([*args, "--force", "--envelope-blur", "-0.01"], "envelope_blur must be a non-negative"),
                        ([*args, "--force", "--wrap", "-1"], "--wrap: must be >= 0"),
                        ([*args, "--force", "--wrap", "1,x"], "--wrap: expected K[,K...]"),
-                       ([*args, "--force", "--wrap", "2"], "--wrap applies to a volume"),
+                       ([*args, "--force", "--wrap", "2"], "--wrap and --grow apply to a volume"),
+                       ([*args, "--force", "--grow", str(init)], "--wrap and --grow apply to a volume"),
                        ([str(ball_scan), "--init", str(tmp_path / "none.ply"), "--out",
                          str(tmp_path / "x.ply")], "not found")):
         assert main(["refine", *bad]) == 2
@@ -566,3 +567,46 @@ def test_remesh_takes_a_surface_with_a_fin():
     assert len(f2) == len(f) - 3 and len(non_manifold_edges(f2.astype(np.int32))) == 0
     vr, fr = refine.remesh(v, f, 0.2)
     assert len(fr) > 100 and len(non_manifold_edges(fr.astype(np.int32))) == 0
+
+
+def test_grow_adds_the_parts_of_the_other_volume_that_touch_the_start():
+    occ = np.zeros((30, 30, 30), bool)
+    occ[10:20, 10:20, 5:15] = True                      # the start: a box
+    other = np.zeros((30, 30, 30))
+    other[12:18, 12:18, 15:25] = 0.5                    # an "ear" on its top: touches it
+    other[2:5, 2:5, 10:12] = 0.9                        # a separate blob: does not
+    other[20:24, 12:14, 1:4] = 0.6                      # touches the box's side, below z_min
+    other[12:14, 20:22, 8:10] = 0.1                     # touches, but below the threshold
+    allowed = np.arange(30) >= 5
+    grown = refine.grow_occupancy(occ, other, 0.2, allowed)
+    np.testing.assert_array_equal(grown[occ], True)
+    added = grown & ~occ
+    assert added[12:18, 12:18, 15:25].all()
+    assert added.sum() == 6 * 6 * 10
+    # through the start mesh: the ear raises the surface's top from 15 to 25 voxels
+    bounds = np.array([[0.0, 0.087], [0.0, 0.087], [0.0, 0.087]])     # 3 mm voxels
+    top = refine.start_mesh(occ.astype(np.float32), bounds, 0.5, 0.0).vertices[:, 2].max()
+    grown_top = refine.start_mesh(occ.astype(np.float32), bounds, 0.5, 0.0, grow=other,
+                                  grow_threshold=0.2).vertices[:, 2].max()
+    assert top == pytest.approx(14.5 * 0.003, abs=1e-3) and grown_top == pytest.approx(24.5 * 0.003, abs=1e-3)
+
+
+def test_refine_command_refuses_a_grow_volume_on_another_grid(ball_scan, tmp_path, capsys):
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+    b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
+    ball = np.zeros((11, 11, 11), np.complex64)
+    ball[3:8, 3:8, 3:8] = 1
+    Volume(volume=ball, bounds=b, method="test").write(tmp_path / "start.h5")
+    Volume(volume=ball[:, :, :10], bounds=b, method="test").write(tmp_path / "other.h5")
+    capsys.readouterr()
+    base = [str(ball_scan), "--init", str(tmp_path / "start.h5"), "--out", str(tmp_path / "x.ply"),
+            "--threshold", "0.5", "--no-progress"]
+    for extra, words in ((["--grow", str(tmp_path / "other.h5")], "differs from --init's"),
+                         (["--grow", str(tmp_path / "none.h5")], "not found"),
+                         (["--grow", str(tmp_path / "start.h5"), "--grow-threshold", "1.5"],
+                          "--grow-threshold: must be in [0, 1)")):
+        assert main(["refine", *base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.ply").exists()

@@ -58,6 +58,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "each start and keep the result with the lowest envelope misfit (the "
                              "envelope stage's last pass; without that stage the final misfit) "
                              "(default 0; docs/refine.md)")
+    parser.add_argument("--grow", type=Path, default=None, metavar="VOLUME",
+                        help="volume --init: a second volume of the same scan on the same grid "
+                             "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
+                             "its peak (z >= --z-min) that touch the start's occupied set are "
+                             "added to it before the wrap; use with --support-steps, which "
+                             "keeps what the data supports (docs/refine.md)")
+    parser.add_argument("--grow-threshold", type=float, default=0.2,
+                        help="--grow: level of the second volume's normalised |value| (default 0.2)")
     parser.add_argument("--keep-candidates", action="store_true",
                         help="also write each start and its refinement next to --out, named "
                              "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT (e.g. to score every "
@@ -109,15 +117,30 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
     path = args.init
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
+    import numpy as np
     factors = wrap_factors(args.wrap)
+    grow_path = getattr(args, "grow", None)
     if path.suffix.lower() == ".h5":
         from sonarsim.dataset import Volume
         vol = Volume.read(path)
+        grow = None
+        if grow_path is not None:
+            if not grow_path.is_file():
+                raise InputError(f"--grow {grow_path}: file not found")
+            other = Volume.read(grow_path)
+            if other.volume.shape != vol.volume.shape or not np.allclose(other.bounds, vol.bounds):
+                raise InputError(f"--grow {grow_path}: its grid {other.volume.shape} over "
+                                 f"{np.asarray(other.bounds).tolist()} differs from --init's "
+                                 f"{vol.volume.shape} over {np.asarray(vol.bounds).tolist()}")
+            if not 0 <= args.grow_threshold < 1:
+                raise InputError(f"--grow-threshold: must be in [0, 1), got {args.grow_threshold}")
+            grow = other.volume
         resolution = range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
-                               wrap_radius=k * resolution)) for k in factors]
-    if any(factors):
-        raise InputError("--wrap applies to a volume --init (.h5), not to a mesh")
+                               wrap_radius=k * resolution, grow=grow,
+                               grow_threshold=args.grow_threshold)) for k in factors]
+    if any(factors) or grow_path is not None:
+        raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
     return [(0.0, load_mesh(path))]
 
