@@ -160,12 +160,13 @@ class RefineResult:
 
 def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
                min_component: float = 0.05, wrap_radius: float = 0.0,
-               grow: np.ndarray | None = None, grow_threshold: float = 0.2) -> trimesh.Trimesh:
+               grow: np.ndarray | None = None, grow_threshold: float = 0.2,
+               grow_beyond: float = 0.0) -> trimesh.Trimesh:
     """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
 
     With ``grow`` (a second volume of the same scan on the same grid, e.g. its
     backprojection) the occupied set (normalised |volume| > ``threshold``) is first grown by
-    :func:`grow_occupancy` (``grow_threshold``, ``z_min``). With ``wrap_radius`` > 0 (m) it is
+    :func:`grow_occupancy` (``grow_threshold``, ``z_min``, ``grow_beyond`` m). With ``wrap_radius`` > 0 (m) it is
     then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
     shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
     surface closes above the ground; components with fewer than ``min_component`` × the
@@ -177,16 +178,16 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
         raise InputError(f"wrap radius: must be >= 0 m, got {wrap_radius}")
     z = voxel_axes(bounds, vol.shape)[2]
     if grow is not None or wrap_radius > 0:
+        b = np.asarray(bounds, np.float64)
+        spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
         occupied = normalized_magnitude(vol, "minmax") > threshold
         if grow is not None:
             if np.shape(grow) != vol.shape:
                 raise InputError(f"the grow volume's grid {np.shape(grow)} differs from the "
                                  f"start's {vol.shape}")
             occupied = grow_occupancy(occupied, normalized_magnitude(grow, "minmax"),
-                                      grow_threshold, z >= z_min)
+                                      grow_threshold, z >= z_min, spacing, grow_beyond)
         if wrap_radius > 0:
-            b = np.asarray(bounds, np.float64)
-            spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
             occupied = wrap_occupancy(occupied, spacing, wrap_radius)
         vol, threshold = occupied.astype(np.float32), 0.5
     vol[:, :, z < z_min] = 0
@@ -197,21 +198,34 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
 
 
 def grow_occupancy(occupied: np.ndarray, other: np.ndarray, threshold: float,
-                   allowed_z: np.ndarray | None = None) -> np.ndarray:
-    """bool [nx, ny, nz]: ``occupied`` ∪ the face-connected parts of {``other`` ≥ ``threshold``}
-    (``other``: a normalised |volume| in [0, 1] on the same grid; restricted to the z planes
-    ``allowed_z`` [nz]) outside ``occupied`` that touch it (face-adjacent voxels).
+                   allowed_z: np.ndarray | None = None, spacing=None,
+                   beyond: float = 0.0) -> np.ndarray:
+    """bool [nx, ny, nz]: ``occupied`` ∪ the parts of {``other`` ≥ ``threshold``} outside it
+    that touch it (face-connected; ``other``: a normalised |volume| in [0, 1] on the same grid;
+    restricted to the z planes ``allowed_z`` [nz]).
+
+    With ``beyond`` > 0 (m; ``spacing`` [3] m per voxel) only structure that reaches farther
+    than ``beyond`` from ``occupied`` is added: the candidate voxels farther than that, and the
+    candidate voxels within geodesic distance ``beyond`` of them (through the candidates: the
+    bridge to the start); the layer that only hugs the start (the backprojection's blur around
+    a surface the start already has) is left out.
 
     The use (``recon refine --grow``): a reconstruction with a strong model (NBP) can miss a
     thin part that the data's backprojection still images (the Table-2 bunny's ear tips,
-    docs/refine.md); its connected surroundings are added to the start, and the support stage
-    then keeps the patches that the data supports.
+    docs/refine.md); the support stage then keeps the patches that the data supports.
     """
     from scipy import ndimage
     occupied = np.asarray(occupied, bool)
     candidate = (np.asarray(other) >= threshold) & ~occupied
     if allowed_z is not None:
         candidate &= np.asarray(allowed_z, bool)[None, None, :]
+    if beyond > 0:
+        spacing = np.asarray(spacing, np.float64)
+        far = candidate & (ndimage.distance_transform_edt(~occupied, sampling=spacing) > beyond)
+        reach = far
+        for _ in range(int(np.ceil(beyond / spacing.min()))):
+            reach = ndimage.binary_dilation(reach) & candidate
+        candidate = reach
     labels, _ = ndimage.label(candidate)
     touching = np.unique(labels[ndimage.binary_dilation(occupied) & candidate])
     return occupied | np.isin(labels, touching[touching > 0])

@@ -610,3 +610,19 @@ def test_refine_command_refuses_a_grow_volume_on_another_grid(ball_scan, tmp_pat
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_grow_beyond_adds_the_far_structure_and_its_bridge_not_the_hugging_layer():
+    occ = np.zeros((40, 40, 40), bool)
+    occ[10:20, 10:20, 5:15] = True                      # the start: a box
+    other = np.zeros((40, 40, 40))
+    other[8:22, 8:22, 5:17] = 0.5                       # a 2-voxel layer hugging it (BP's blur)
+    other[13:16, 13:16, 15:30] = 0.5                    # an "ear" 15 voxels tall on its top
+    spacing = np.full(3, 0.003)
+    every = refine.grow_occupancy(occ, other, 0.2, None)
+    far = refine.grow_occupancy(occ, other, 0.2, None, spacing, beyond=4 * 0.003)
+    assert (every & ~occ).sum() == (other >= 0.2).sum() - occ.sum()      # all of it
+    added = far & ~occ
+    assert added[13:16, 13:16, 15:30].all()             # the whole ear, its base included
+    assert not added[8:10, 8:22, 5:15].any() and not added[20:22, 8:22, 5:15].any()   # no layer
+    assert added.sum() < 1.3 * 3 * 3 * 15

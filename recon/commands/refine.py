@@ -66,6 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "keeps what the data supports (docs/refine.md)")
     parser.add_argument("--grow-threshold", type=float, default=0.2,
                         help="--grow: level of the second volume's normalised |value| (default 0.2)")
+    parser.add_argument("--grow-beyond", type=float, default=0.0, metavar="K",
+                        help="--grow: add only structure that reaches farther than K x the range "
+                             "resolution c/2B from the start (and its bridge to the start), not "
+                             "the layer hugging it (default 0: every touching part)")
     parser.add_argument("--keep-candidates", action="store_true",
                         help="also write each start and its refinement next to --out, named "
                              "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT (e.g. to score every "
@@ -134,11 +138,15 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
                                  f"{vol.volume.shape} over {np.asarray(vol.bounds).tolist()}")
             if not 0 <= args.grow_threshold < 1:
                 raise InputError(f"--grow-threshold: must be in [0, 1), got {args.grow_threshold}")
+            if not (np.isfinite(args.grow_beyond) and args.grow_beyond >= 0):
+                raise InputError(f"--grow-beyond: must be >= 0, got {args.grow_beyond}")
             grow = other.volume
         resolution = range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
+        beyond = getattr(args, "grow_beyond", 0.0) * resolution
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
                                wrap_radius=k * resolution, grow=grow,
-                               grow_threshold=args.grow_threshold)) for k in factors]
+                               grow_threshold=args.grow_threshold, grow_beyond=beyond))
+                for k in factors]
     if any(factors) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
