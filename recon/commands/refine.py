@@ -63,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
                              "its peak (z >= --z-min) that touch the start's occupied set are "
                              "added to it before the wrap; use with --support-steps, which "
-                             "keeps what the data supports (docs/refine.md)")
+                             "keeps what the data supports. Experimental: it halved the Table-2 "
+                             "bunny and made a held-out box 5x worse (docs/refine.md 'Grown starts')")
     parser.add_argument("--grow-threshold", type=float, default=0.2,
                         help="--grow: level of the second volume's normalised |value| (default 0.2)")
     parser.add_argument("--grow-beyond", type=float, default=0.0, metavar="K",
