@@ -166,8 +166,8 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
 
     With ``grow`` (a second volume of the same scan on the same grid, e.g. its
     backprojection) the occupied set (normalised |volume| > ``threshold``) is first grown by
-    :func:`grow_occupancy` (``grow_threshold``, ``z_min``, ``grow_beyond`` m). With ``wrap_radius`` > 0 (m) it is
-    then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
+    :func:`grow_occupancy` (``grow_threshold``, ``z_min``, ``grow_beyond`` m). With
+    ``wrap_radius`` > 0 (m) it is then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
     shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
     surface closes above the ground; components with fewer than ``min_component`` × the
     largest's faces are dropped (isolated blobs of the volume).
