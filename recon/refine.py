@@ -306,11 +306,10 @@ def split_pinched_vertices(vertices: np.ndarray, faces: np.ndarray
     if n_f == 0:
         return np.asarray(vertices, np.float64)[:0], f
     # half-edges (a → b) of face i; corner (i, k) is vertex f[i, k]
-    a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+    a, b, key = _half_edges(f)
     face, k = np.repeat(np.arange(n_f), 3), np.tile(np.arange(3), n_f)
     corner_a, corner_b = 3 * face + k, 3 * face + (k + 1) % 3
     # an edge {a, b} shared by two faces joins their corners at a and at b
-    key = np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
     order = np.argsort(key, kind="stable")
     same = np.flatnonzero(key[order][1:] == key[order][:-1])
     i, j = order[same], order[same + 1]
@@ -321,11 +320,10 @@ def split_pinched_vertices(vertices: np.ndarray, faces: np.ndarray
     cj_b = np.where(a[j] == a[i], corner_b[j], corner_a[j])
     rows, cols = np.concatenate([ci_a, ci_b]), np.concatenate([cj_a, cj_b])
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_f, 3 * n_f))
-    _, label = connected_components(graph, directed=False)
-    new_ids, first = np.unique(label, return_index=True)[0:2]
-    remap = np.searchsorted(new_ids, label)
+    _, label = connected_components(graph, directed=False)     # labels 0..n−1: new vertex ids
+    first = np.unique(label, return_index=True)[1]
     return (np.asarray(vertices, np.float64)[f.ravel()[first]],
-            remap.reshape(-1, 3).astype(np.int64))
+            label.reshape(-1, 3).astype(np.int64))
 
 
 def manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -334,11 +332,16 @@ def manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     split (:func:`split_pinched_vertices`): an edge-manifold mesh with a few small holes."""
     f = np.asarray(faces, np.int64)
     if len(f):
-        edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-        _, inverse, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
-        bad = (count[inverse.ravel()] > 2).reshape(-1, 3).any(axis=1)
-        f = f[~bad]
+        _, inverse, count = np.unique(_half_edges(f)[2], return_inverse=True, return_counts=True)
+        f = f[~(count[inverse] > 2).reshape(-1, 3).any(axis=1)]
     return split_pinched_vertices(vertices, f)
+
+
+def _half_edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b, key) [3F] of faces [F, 3]: half-edge k of face i runs a → b = f[i, k] →
+    f[i, (k+1) % 3]; ``key`` is the same for both half-edges of an undirected edge."""
+    a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+    return a, b, np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
 
 
 def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float

@@ -77,16 +77,16 @@ def check_settings(settings) -> None:
     """Refuse the combinations the SH field does not support (one line): the occupancy
     representation and the incoherent ablation."""
     degree = parse_scattering(settings.scattering)
+    if not degree and (getattr(settings, "sh_start", 0) > 0
+                       or getattr(settings, "sh_sparsity", 0.0) > 0):
+        raise InputError("sh_start / sh_sparsity act on the l >= 1 coefficients: "
+                         "use --scattering sh:L with L >= 1")
     if degree is None:
-        if getattr(settings, "sh_start", 0) > 0 or getattr(settings, "sh_sparsity", 0.0) > 0:
-            raise InputError("sh_start / sh_sparsity need --scattering sh:L (L >= 1)")
         return
     if getattr(settings, "occupancy", False):
         raise InputError("scattering: sh:L is not available with --occupancy")
     if getattr(settings, "incoherent", False):
         raise InputError("scattering: sh:L needs a coherent field, not --incoherent")
-    if degree == 0 and (settings.sh_start > 0 or settings.sh_sparsity > 0):
-        raise InputError("sh_start / sh_sparsity act on the l >= 1 coefficients: use sh:L with L >= 1")
 
 
 def n_coefficients(degree: int) -> int:

@@ -57,7 +57,7 @@ def loss_terms(m, field, samples, s_re, s_im, y_re, y_im, t_re, t_im, settings, 
         o_near, _, _ = field.occupancy_and_amplitude(samples.points + u_vec * (settings.smooth_delta * vbar))
         jump = dr.abs(cache["occupancy"] - o_near)
         terms["surface_tv"] = weight * settings.surface_tv * dr.sum(valid * jump) / n_valid
-    if getattr(settings, "sh_sparsity", 0.0) > 0 and cache and "sh" in cache:
+    if settings.sh_sparsity > 0 and cache and "sh" in cache:
         # SH-SAS's L1 prior on the direction-dependent coefficients (recon.scattering)
         l1 = sum(dr.sqrt(re * re + im * im + 1e-20) for re, im in cache["sh"])
         terms["sh_sparsity"] = weight * settings.sh_sparsity * dr.sum(valid * l1) / n_valid
