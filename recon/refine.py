@@ -405,12 +405,14 @@ def _patch_centres(vertices, faces, labels, n_patches) -> np.ndarray:
 def drop_faces(vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray,
                min_component: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """The faces ``mask`` keeps, without unused vertices, and without the connected
-    components smaller than ``min_component`` × the largest (faces)."""
+    components smaller than ``min_component`` × the largest (faces); made :func:`manifold`
+    (removing patches leaves bow-tie vertices where two kept patches touch at a corner, which
+    Mitsuba warns about and which would couple two sheets in LargeSteps' Laplacian)."""
     import trimesh
     kept = trimesh.Trimesh(vertices, np.asarray(faces)[mask], process=False)
     kept.remove_unreferenced_vertices()
     kept = largest_components(kept, min_component)
-    return np.asarray(kept.vertices, np.float64), np.asarray(kept.faces, np.int64)
+    return manifold(kept.vertices, kept.faces)
 
 
 # ------------------------------------------------------------------------ the model

@@ -553,6 +553,23 @@ def test_split_pinched_vertices_gives_each_fan_its_own_vertex():
     np.testing.assert_array_equal(v3[f3], sphere.vertices[sphere.faces])
 
 
+def test_drop_faces_leaves_no_pinched_vertex():
+    """Removing two faces of one vertex's fan that share no edge leaves that vertex a bow-tie
+    on a still connected surface; the support stage's :func:`refine.drop_faces` splits it."""
+    sphere = trimesh.creation.icosphere(2)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    fan = np.flatnonzero((f == 0).any(axis=1))
+    a = fan[0]
+    b = next(c for c in fan[1:] if len(set(f[a]) & set(f[c])) == 1)   # only vertex 0 shared
+    keep = np.ones(len(f), bool)
+    keep[[a, b]] = False
+    v2, f2 = refine.drop_faces(v, f, keep)
+    assert len(f2) == len(f) - 2 and len(v2) == len(v) + 1        # vertex 0 split in two
+    np.testing.assert_allclose(np.sort(v2[f2].reshape(-1, 9), axis=0),
+                               np.sort(v[f[keep]].reshape(-1, 9), axis=0))   # the same triangles
+    assert len(refine.split_pinched_vertices(v2, f2)[0]) == len(v2)   # nothing pinched is left
+
+
 def test_remesh_takes_a_surface_with_a_fin():
     """An edge of three faces (a fin on a sphere, as remesh_botsch's own output can have):
     gpytoolbox refuses it; :func:`refine.remesh` drops the faces of that edge and remeshes."""
