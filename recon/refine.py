@@ -20,10 +20,10 @@ the rendered waveforms match the dataset's:
   scale: a wide capture range), stage 2 the raw waveforms (the carrier phase: sub-millimetre
   sensitivity).
 * **Regulariser.** The vertices are optimised in the differential form of
-  ``mi.ad.LargeSteps`` (Nicolet et al. 2021, u = (I + λL)v) with UniformAdam, as in Mitsuba's
-  shape-optimisation tutorial; the mesh is remeshed isotropically
-  (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) between segments, which keeps the
-  triangles well shaped.
+  ``mi.ad.LargeSteps`` (Nicolet et al. 2021, u = (I + λL)v) with Adam per coordinate
+  (UniformAdam, the tutorial's choice, on request); the mesh is remeshed isotropically
+  (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) at the start and, with
+  ``remesh_every``, between segments, which keeps the triangles well shaped.
 * **Support stage** (optional, first): the mesh is cut into patches with one albedo each;
   the albedos are fitted to the envelopes with the geometry fixed and the patches the data
   leave dark (below ``support_keep`` × the median) are removed: floaters and smears of the
@@ -61,8 +61,8 @@ DEFAULT_GROUND = (0.4, 0.4, 1.0)     # m, m, albedo: the simulator's default gro
 class RefineSettings:
     """How :func:`solve` refines a mesh.
 
-    envelope_steps, waveform_steps: optimiser steps of the two stages. lr: UniformAdam step
-    in metres of latent displacement (decays ×0.1 over each stage, cosine). large_steps_lambda:
+    envelope_steps, waveform_steps: optimiser steps of the two stages. lr: Adam step in
+    metres of latent displacement (decays ×0.1 over each stage, cosine). large_steps_lambda:
     λ of LargeSteps. edge_length: target edge of the isotropic remeshing (m); remesh_every:
     steps between remeshings (0: only the start mesh is remeshed). pings_per_batch: pings
     per step. fit_albedo: fit the object's albedo (relative to the ground's; needs a ground).
@@ -84,13 +84,16 @@ class RefineSettings:
     area-weighted median are removed (surface the data does not support: floaters, smears).
     """
 
-    envelope_steps: int = 120
-    waveform_steps: int = 180
-    lr: float = 5e-4
+    # The defaults are the command measured from the NBP preset's solids of the full-size
+    # Table-2 scans (bunny, cube, cylinder; checked on a held-out box; docs/refine.md
+    # "Defaults"): 40 + 20 steps of 32 pings, no remeshing, per-coordinate Adam.
+    envelope_steps: int = 40
+    waveform_steps: int = 20
+    lr: float = 1e-3
     large_steps_lambda: float = 20.0
-    edge_length: float = 5e-3
-    remesh_every: int = 100
-    pings_per_batch: int = 128
+    edge_length: float = 8e-3
+    remesh_every: int = 0
+    pings_per_batch: int = 32
     fit_albedo: bool = True
     bounces: int = 1
     surface_spacing: float = 4e-3
@@ -98,7 +101,7 @@ class RefineSettings:
     oversample: int | None = None
     seed: int = 0
     envelope_blur: float = 0.0
-    uniform_adam: bool = True
+    uniform_adam: bool = False
     support_steps: int = 0
     patch_size: float = 0.025
     support_keep: float = 0.7

@@ -294,11 +294,12 @@ def _radius_error(vertices) -> float:
     return float(np.mean(np.linalg.norm(upper - [0.0, 0.0, 0.06], axis=1)) - 0.03)
 
 
-@pytest.mark.parametrize("schedule", [{}, {"uniform_adam": False, "envelope_blur": 0.01, "lr": 2e-3}],
+@pytest.mark.parametrize("schedule", [{"uniform_adam": True},
+                                      {"uniform_adam": False, "envelope_blur": 0.01, "lr": 2e-3}],
                          ids=["uniform-adam", "adam-blurred-envelopes"])
 def test_refine_shrinks_an_inflated_sphere_onto_the_scanned_one(mi, ball_scan, schedule):
     """A real (short) refinement: start 5 mm too large; the surface must move most of the way
-    (with the default UniformAdam, and with per-coordinate Adam on blurred envelopes)."""
+    (with UniformAdam, and with per-coordinate Adam on blurred envelopes)."""
     from sonarsim.dataset import SonarDataset
     ds = SonarDataset.read(ball_scan)
     start = trimesh.creation.icosphere(subdivisions=3, radius=0.035)
@@ -510,6 +511,23 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
     starts = [trimesh.load(tmp_path / f"refined.wrap{k}.start.ply") for k in (0, 1)]
     assert starts[1].euler_number == 2 and starts[0].euler_number != 2   # the wrap sealed the slot
     assert "final misfit" in capsys.readouterr().out
+
+
+def test_default_wrap_is_three_starts_for_a_volume_and_none_for_a_mesh(ball_scan, tmp_path):
+    import argparse
+    from recon.commands import refine as command
+    from sonarsim.dataset import SonarDataset, Volume
+    ds = SonarDataset.read(ball_scan)
+    b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
+    ball = np.zeros((21, 21, 21), np.complex64)
+    ball[6:15, 6:15, 4:13] = 1
+    Volume(volume=ball, bounds=b, method="test").write(tmp_path / "start.h5")
+    trimesh.creation.icosphere(2, radius=0.03).export(tmp_path / "start.ply")
+    args = dict(threshold=0.5, z_min=0.005, wrap=None, grow=None, grow_threshold=0.2, grow_beyond=0.0)
+    starts = command.initial_meshes(argparse.Namespace(init=tmp_path / "start.h5", **args), ds)
+    assert [k for k, _ in starts] == [0.0, 3.0, 6.0] == command.wrap_factors(command.DEFAULT_WRAP)
+    starts = command.initial_meshes(argparse.Namespace(init=tmp_path / "start.ply", **args), ds)
+    assert [k for k, _ in starts] == [0.0]
 
 
 @pytest.mark.parametrize("radius", [0.003, 0.0065, 0.009, 0.0125])

@@ -13,11 +13,12 @@ from . import _common
 HELP = ("Refine a surface mesh (from a volume's iso-surface or a mesh file) by fitting the "
         "rendered waveforms to the dataset's (docs/refine.md).")
 OUTPUTS = ("out", "history")
+DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 
 OPTION_HELP = {
     "envelope_steps": "steps of stage 1 (matched-filter envelopes)",
     "waveform_steps": "steps of stage 2 (raw waveforms)",
-    "lr": "UniformAdam step in metres of latent displacement (cosine decay to 1/10 per stage)",
+    "lr": "Adam step in metres of latent displacement (cosine decay to 1/10 per stage)",
     "large_steps_lambda": "lambda of mi.ad.LargeSteps (larger = smoother updates)",
     "edge_length": "target edge length of the isotropic remeshing (m)",
     "remesh_every": "steps between remeshings (0: only the start mesh)",
@@ -30,7 +31,7 @@ OPTION_HELP = {
     "seed": "order of the batches and the renderer's random numbers",
     "envelope_blur": "coarse to fine: smooth both envelopes by a Gaussian of this sigma (m of "
                      "one-way range) at the envelope stage's first step, shrinking to 0 at its last",
-    "uniform_adam": "one Adam scale for all vertices (UniformAdam); --no-uniform-adam: per coordinate",
+    "uniform_adam": "one Adam scale for all vertices (UniformAdam, Nicolet et al.); default: per coordinate",
     "support_steps": "steps of the support stage (per-patch albedo fit, then unsupported patches "
                      "removed) before the geometry stages; 0: none",
     "patch_size": "support stage: patch size (m)",
@@ -51,13 +52,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--z-min", type=float, default=0.005,
                         help="volume --init: clear voxels below this height (the ground's echo), m "
                              "(default 0.005)")
-    parser.add_argument("--wrap", default="0", metavar="K[,K...]",
+    parser.add_argument("--wrap", default=None, metavar="K[,K...]",
                         help="volume --init: seal the occupied set's tunnels and holes by a closing "
                              "with a ball of K x the range resolution c/2B of the dataset's pulse, "
                              "then fill what it encloses (0: off). Several values: refine from "
                              "each start and keep the result with the lowest envelope misfit (the "
                              "envelope stage's last pass; without that stage the final misfit) "
-                             "(default 0; docs/refine.md)")
+                             f"(default {DEFAULT_WRAP} for a volume, 0 for a mesh; docs/refine.md)")
     parser.add_argument("--grow", type=Path, default=None, metavar="VOLUME",
                         help="volume --init: a second volume of the same scan on the same grid "
                              "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
@@ -123,9 +124,9 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
     import numpy as np
-    factors = wrap_factors(args.wrap)
     grow_path = getattr(args, "grow", None)
     if path.suffix.lower() == ".h5":
+        factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
         from sonarsim.dataset import Volume
         vol = Volume.read(path)
         grow = None
@@ -148,7 +149,7 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
                                wrap_radius=k * resolution, grow=grow,
                                grow_threshold=args.grow_threshold, grow_beyond=beyond))
                 for k in factors]
-    if any(factors) or grow_path is not None:
+    if any(wrap_factors(args.wrap or "0")) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
     return [(0.0, load_mesh(path))]
