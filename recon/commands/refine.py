@@ -144,7 +144,7 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
                 raise InputError(f"--grow-beyond: must be >= 0, got {args.grow_beyond}")
             grow = other.volume
         resolution = range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
-        beyond = getattr(args, "grow_beyond", 0.0) * resolution
+        beyond = args.grow_beyond * resolution
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
                                wrap_radius=k * resolution, grow=grow,
                                grow_threshold=args.grow_threshold, grow_beyond=beyond))
