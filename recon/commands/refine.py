@@ -125,8 +125,9 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
         raise InputError(f"--init {path}: file not found")
     import numpy as np
     grow_path = getattr(args, "grow", None)
+    given = None if args.wrap is None else wrap_factors(args.wrap)
     if path.suffix.lower() == ".h5":
-        factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
+        factors = wrap_factors(DEFAULT_WRAP) if given is None else given
         from sonarsim.dataset import Volume
         vol = Volume.read(path)
         grow = None
@@ -149,7 +150,7 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
                                wrap_radius=k * resolution, grow=grow,
                                grow_threshold=args.grow_threshold, grow_beyond=beyond))
                 for k in factors]
-    if any(wrap_factors(args.wrap or "0")) or grow_path is not None:
+    if any(given or ()) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
     from sonarsim.scene import load_mesh
     return [(0.0, load_mesh(path))]
