@@ -21,7 +21,9 @@ occupancy whose boundary is the surface. :func:`solidify` makes one from the fie
    an occupied voxel is hidden from the whole scan; the data say nothing about it, and for an
    object it is interior (a cavity reached only through a narrow or oblique opening, a base
    under an overhang). Such voxels become occupied, then step 4 runs again
-   (:func:`hidden_from`).
+   (:func:`hidden_from`). With ``quorum`` q < 1, hidden from at least a fraction q of the
+   sensors is enough: a cavity glimpsed only through the pores of a porous shell by a few
+   sensors is filled too.
 
 What it does to other objects: an open object (a bowl open upward, an arch, a tube open at an
 end) keeps its opening, because its inside is joined to the boundary through it, and is not
@@ -36,7 +38,7 @@ import numpy as np
 
 from sonarsim.errors import InputError
 
-DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0)
+DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0, quorum=1.0)
 
 
 def _ndimage():
@@ -113,9 +115,11 @@ def _blocked_along(sub: np.ndarray, step: np.ndarray) -> np.ndarray:
     return blocked
 
 
-def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int) -> np.ndarray:
+def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int,
+                quorum: float = 1.0) -> np.ndarray:
     """bool like ``occupied``: the empty voxels hidden from ``count`` sensor positions, i.e. the
-    straight line from the voxel toward each of them meets an occupied voxel.
+    straight line from the voxel toward at least a fraction ``quorum`` (in (0, 1]; 1 = every
+    one) of them meets an occupied voxel.
 
     Lines are parallel per sensor (the direction from the occupied set's centre to the sensor:
     the far-field approximation, exact for sensors far compared with the object) and stepped
@@ -139,12 +143,16 @@ def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int) 
     box = tuple(slice(a, b) for a, b in zip(lo, hi))
     sub = occupied[box]
     centre = idx.mean(0) * spacing
-    hid = ~sub
-    for direction in sensor_directions(sensors, count, centre):
-        hid &= _blocked_along(sub, direction * spacing.min() / spacing)
-        if not hid.any():
+    directions = sensor_directions(sensors, count, centre)
+    # blocked toward at least `need` of the K directions; a voxel may miss K - need of them
+    need = int(np.ceil(quorum * len(directions) - 1e-9))
+    misses = np.zeros(sub.shape, dtype=np.int32)
+    allowed = len(directions) - need
+    for direction in directions:
+        misses += ~_blocked_along(sub, direction * spacing.min() / spacing)
+        if np.all(sub | (misses > allowed)):
             break
-    out[box] = hid
+    out[box] = ~sub & (misses <= allowed)
     return out
 
 
@@ -162,16 +170,23 @@ def check_parameters(threshold: float, min_fraction: float, close, *,
         raise InputError(f"{names[2]}: must be an integer {bound}, got {close}")
 
 
+def check_quorum(quorum: float, name: str = "solid quorum") -> None:
+    """The hidden-voxel quorum is a fraction in (0, 1] (one-line InputError otherwise)."""
+    if not (np.isfinite(quorum) and 0 < quorum <= 1):
+        raise InputError(f"{name}: must be in (0, 1], got {quorum}")
+
+
 def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              min_fraction: float = DEFAULTS["min_fraction"], close: int = DEFAULTS["close"],
              floor: bool = DEFAULTS["floor"], hidden: int = DEFAULTS["hidden"],
-             sensors: np.ndarray | None = None, bounds=None) -> np.ndarray:
+             sensors: np.ndarray | None = None, bounds=None,
+             quorum: float = DEFAULTS["quorum"]) -> np.ndarray:
     """bool [nx, ny, nz]: the solid occupancy of a reconstructed field (module docstring).
 
     volume: complex or real [nx, ny, nz] (z the vertical axis, index 0 the lowest plane).
     hidden: sensor positions to test visibility from (0 = step 5 off); sensors: [N, 3] the
     scan's sensor positions (m) and bounds [3, 2] the volume's box (m), both needed with
-    ``hidden`` > 0.
+    ``hidden`` > 0; quorum: the fraction of those sensors a voxel must be hidden from.
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
@@ -179,6 +194,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     check_parameters(threshold, min_fraction, close)
     if int(hidden) != hidden or hidden < 0:
         raise InputError(f"solid hidden: must be an integer >= 0, got {hidden}")
+    check_quorum(quorum)
     occupied = occupancy(volume, threshold)
     occupied = drop_small_components(occupied, min_fraction)
     occupied = close_gaps(occupied, int(close))
@@ -191,5 +207,5 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     n = np.array(volume.shape)
     spacing = (bounds[:, 1] - bounds[:, 0]) / np.maximum(n - 1, 1)
     relative = np.asarray(sensors, dtype=np.float64) - bounds[:, 0]
-    occupied = occupied | hidden_from(occupied, spacing, relative, int(hidden))
+    occupied = occupied | hidden_from(occupied, spacing, relative, int(hidden), float(quorum))
     return fill_enclosed(occupied, bool(floor))

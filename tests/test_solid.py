@@ -154,40 +154,82 @@ def test_cavity_seen_from_above_stays_open():
     assert not out[19:21, 19:21, 14:28].any()
 
 
-def _hidden_by_marching(occupied, directions):
+def _hidden_by_marching(occupied, directions, quorum=1.0):
     """Straightforward reference: per empty voxel and direction, walk t = 1, 2, ... voxels
-    along the direction (rounded to the nearest voxel) until a True voxel or the box's edge."""
+    along the direction (rounded to the nearest voxel) until a True voxel or the box's edge;
+    hidden when the walk met a True voxel for at least ``quorum`` × K of the K directions."""
     shape = np.array(occupied.shape)
     out = np.zeros_like(occupied)
     for v in np.argwhere(~occupied):
-        hidden_all = True
+        blocked = 0
         for d in directions:
-            t, met = 1, False
+            t = 1
             while True:
                 p = v + np.round(t * d).astype(int)
                 if np.any(p < 0) or np.any(p >= shape):
                     break
                 if occupied[tuple(p)]:
-                    met = True
+                    blocked += 1
                     break
                 t += 1
-            if not met:
-                hidden_all = False
-                break
-        out[tuple(v)] = hidden_all
+        out[tuple(v)] = blocked >= quorum * len(directions)
     return out
 
 
-def test_hidden_from_matches_a_voxel_by_voxel_march():
+@pytest.mark.parametrize("quorum", [1.0, 0.6, 0.34])
+def test_hidden_from_matches_a_voxel_by_voxel_march(quorum):
     rng = np.random.default_rng(3)
     occupied = rng.random((9, 8, 7)) < 0.35
     occupied[0, 0, 0] = occupied[-1, -1, -1] = True   # the bounding box is the whole array
     sensors = np.array([[50.0, 3.0, 20.0], [-40.0, -30.0, 10.0], [4.0, 60.0, -5.0]])
-    got = solid.hidden_from(occupied, np.ones(3), sensors, 3)
+    got = solid.hidden_from(occupied, np.ones(3), sensors, 3, quorum)
     centre = np.argwhere(occupied).mean(0)
     directions = solid.sensor_directions(sensors, 3, centre)
-    assert np.array_equal(got, _hidden_by_marching(occupied, directions))
+    assert np.array_equal(got, _hidden_by_marching(occupied, directions, quorum))
     assert 0 < got.sum() < (~occupied).sum()
+
+
+def _porous_box():
+    """A hollow box (walls 2 voxels) with a 2×2 pore through the middle of each side wall:
+    a few sensors of a ring look through a pore into the cavity."""
+    box = np.zeros((N,) * 3, dtype=bool)
+    box[10:30, 10:30, 10:30] = True
+    cavity = np.zeros_like(box)
+    cavity[12:28, 12:28, 12:28] = True
+    box &= ~cavity
+    box[10:12, 19:21, 19:21] = box[28:30, 19:21, 19:21] = False
+    box[19:21, 10:12, 19:21] = box[19:21, 28:30, 19:21] = False
+    return box, cavity
+
+
+def test_quorum_fills_a_porous_shell_that_every_sensor_rule_leaves_open():
+    """Of 24 sensors on a ring 10° up, those facing a pore see into the cavity: hidden from
+    every sensor (quorum 1) leaves the voxels on their lines empty, hidden from 80 % of them
+    fills the whole cavity."""
+    box, cavity = _porous_box()
+    bounds = np.array([[0.0, N - 1.0]] * 3)
+    kw = dict(threshold=0.5, min_fraction=0.0, close=0, floor=False, hidden=24,
+              sensors=_ring(10.0), bounds=bounds)
+    every = solid.solidify(_as_field(box), **kw)
+    assert not every[cavity].all()
+    assert solid.solidify(_as_field(box), quorum=0.8, **kw)[cavity].all()
+
+
+def test_quorum_keeps_an_opening_most_sensors_look_into():
+    """The chimney box seen from 80° up: every sensor looks down the chimney, so the voxels
+    under it stay empty with a quorum of 0.8 as with 1."""
+    box, cavity = _box_with_chimney()
+    bounds = np.array([[0.0, N - 1.0]] * 3)
+    out = solid.solidify(_as_field(box), threshold=0.5, min_fraction=0.0, close=0, floor=False,
+                         hidden=24, sensors=_ring(80.0), bounds=bounds, quorum=0.8)
+    assert not out[19:21, 19:21, 14:28].any()
+
+
+@pytest.mark.parametrize("quorum", [0.0, -0.5, 1.5, float("nan")])
+def test_quorum_outside_zero_one_is_refused(quorum):
+    with pytest.raises(InputError, match="quorum"):
+        solid.solidify(np.ones((4, 4, 4)), hidden=4, sensors=np.ones((2, 3)),
+                       bounds=np.array([[0.0, 1.0]] * 3), quorum=quorum)
 
 
 def test_hidden_needs_sensors_and_bounds():

@@ -221,7 +221,8 @@ def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarra
     occupied = solid.solidify(field, threshold=settings.solid_threshold,
                               min_fraction=settings.solid_min_fraction,
                               close=int(settings.solid_close), floor=settings.solid_ground,
-                              hidden=int(settings.solid_hidden), sensors=sensors, bounds=bounds)
+                              hidden=int(settings.solid_hidden), sensors=sensors, bounds=bounds,
+                              quorum=float(settings.solid_hidden_quorum))
     above = int(np.count_nonzero(solid.occupancy(field, settings.solid_threshold)))
     return occupied.astype(np.complex64), above
 

@@ -66,6 +66,7 @@ class SolverSettings(NetworkSettings):
     solid_close: int = 3
     solid_ground: bool = True
     solid_hidden: int = 256
+    solid_hidden_quorum: float = 0.8
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -96,6 +97,8 @@ class SolverSettings(NetworkSettings):
                          max_close=10)
         if int(self.solid_hidden) != self.solid_hidden or not 0 <= self.solid_hidden <= 4096:
             raise InputError(f"solid_hidden: must be an integer in [0, 4096], got {self.solid_hidden}")
+        from ..solid import check_quorum
+        check_quorum(self.solid_hidden_quorum, "solid_hidden_quorum")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
         from ..scattering import check_settings
@@ -187,6 +190,8 @@ HELP = {
     "solid_close": "solid: close gaps of the occupied set by this many voxels",
     "solid_hidden": "solid: fill the voxels that the occupied set hides from this many sensor "
                     "positions spread over the scan (0 = off; recon.solid step 5)",
+    "solid_hidden_quorum": "solid: a voxel counts as hidden when the occupied set hides it from "
+                           "at least this fraction of those sensors (1 = every one)",
     "solid_ground": "solid: the grid's lowest z plane is the ground, so a shell standing on it "
                     "is filled",
     "warm_start_lr": "NBP: Adam learning rate of the warm start (absolute; the fit is to the "
@@ -214,7 +219,7 @@ NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
 # voxels (≈ the range resolution c/2B = 8.6 mm of the Table-2 LFM on 3.2 mm voxels; measured on
 # the Table-2 shapes and held-out torus / two-object / bowl, docs "Solid output").
 SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=3, solid_ground=True,
-             solid_hidden=256)
+             solid_hidden=256, solid_hidden_quorum=0.8)
 
 PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
