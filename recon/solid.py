@@ -30,7 +30,9 @@ end) keeps its opening, because its inside is joined to the boundary through it,
 filled; a thin plate or a single surface stays what it is (it encloses nothing); an object
 whose *base* is open and stands on the ground (a dome, a cup upside down) is filled, as
 ``floor=True`` says it is closed by the ground; an object smaller than ``min_fraction`` of the
-largest one in the box is dropped with the floaters. Tests: tests/test_solid.py.
+largest one in the box is dropped with the floaters. With step 5 and ``quorum`` q < 1, an
+opening seen by fewer than a fraction 1 − q of the sensors is closed too (the lower hole of
+a torus lying on the ground, for the Table-2 scan and q = 0.8). Tests: tests/test_solid.py.
 """
 from __future__ import annotations
 
