@@ -201,11 +201,12 @@ HELP = {
 }
 
 # Start values of the network (overriding the voxel defaults above): the configuration
-# measured on the bunny (docs/reconstruction.md). Adam's step on the network's weights is
+# measured on the bunny (docs/reconstruction.md); no Lambertian factor since 2026-11-28 (it
+# put a lid over shallow cavities; docs "The Lambertian factor and the lid"). Adam's step on the network's weights is
 # absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
-                        warm_start_iterations=300, pings_per_chunk=1, lambertian=True,
+                        warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
                         occlusion_scale=500.0, sparsity=0.0, reg_start=500,
                         solid_threshold=0.3, solid_hidden_quorum=0.8)
 
