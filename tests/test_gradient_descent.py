@@ -176,7 +176,7 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     d = gd.settings_for(None)
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units, d.prior_units) == (
         False, 0.0, 2.0, "bp", "relative", "energy")
-    n = nbp.settings_for(None)   # the network keeps occlusion, no Lambertian factor (2026-11-28), no priors
+    n = nbp.settings_for(None)   # occlusion, no Lambertian factor (since 2026-11-28), no priors
     assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (False, 500.0, 0.0, 500)
     with pytest.raises(InputError):
         gd.settings_for("nope")
@@ -326,7 +326,8 @@ def test_frozen_presets_are_every_entry_points_default():
     assert solver.PRESETS["gd"]["solid_hidden"] == solver.PRESETS["nbp"]["solid_hidden"] == 256
     # NBP: hidden from 80 % of those sensors suffices (porous shells); GD: from every one
     # (0.8 closed a held-out arch's tunnel in GD's solid; measured, docs)
-    assert (solver.PRESETS["nbp"]["solid_hidden_quorum"], solver.PRESETS["gd"]["solid_hidden_quorum"]) == (0.8, 1.0)
+    assert (solver.PRESETS["nbp"]["solid_hidden_quorum"],
+            solver.PRESETS["gd"]["solid_hidden_quorum"]) == (0.8, 1.0)
     # both close gaps by 3 voxels (≈ the Table-2 range resolution; measured, docs)
     assert solver.PRESETS["gd"]["solid_close"] == solver.PRESETS["nbp"]["solid_close"] == 3
     assert nbp.settings_for().solid_close == gd.settings_for().solid_close == 3

@@ -202,8 +202,8 @@ HELP = {
 
 # Start values of the network (overriding the voxel defaults above): the configuration
 # measured on the bunny (docs/reconstruction.md); no Lambertian factor since 2026-11-28 (it
-# put a lid over shallow cavities; docs "The Lambertian factor and the lid"). Adam's step on the network's weights is
-# absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
+# put a lid over shallow cavities; docs "The Lambertian factor and the lid"). Adam's step on
+# the network's weights is absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
@@ -220,14 +220,14 @@ NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
 # voxels (≈ the range resolution c/2B = 8.6 mm of the Table-2 LFM on 3.2 mm voxels; measured on
 # the Table-2 shapes and held-out torus / two-object / bowl, docs "Solid output").
 SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=3, solid_ground=True,
-             solid_hidden=256, solid_hidden_quorum=1.0)
+             solid_hidden=256)
 
 PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
                pings_per_iteration=5, pings_per_chunk=0, bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
-               reg_start=200, **SOLID, solid_threshold=0.5),
+               reg_start=200, **SOLID, solid_threshold=0.5, solid_hidden_quorum=1.0),
     # 300 steps after the 300-step BP warm start (1 000 until 2026-11-27: longer fits thin the
     # field and the solid loses; docs/reconstruction.md "Fit length")
     "nbp": dict(NETWORK_DEFAULTS, iterations=300, pings_per_iteration=5, pings_per_chunk=5,
@@ -236,7 +236,7 @@ PRESETS = {
                 hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
                 # hidden from 80 % of the sensors fills porous shells (2026-11-28; GD keeps 1:
                 # 0.8 closed a held-out arch's tunnel in its solid; docs "hidden-voxel quorum")
-                **dict(SOLID, solid_hidden_quorum=0.8), solid_threshold=0.3),
+                **SOLID, solid_threshold=0.3, solid_hidden_quorum=0.8),
     "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
                 hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
