@@ -5,7 +5,7 @@ saw and dark elsewhere, with a few isolated bright specks (floaters) where noise
 were fitted. The evaluation of Reed et al. 2023 (IoU against the GT's *volume* samples,
 Chamfer of the thresholded occupancy's surface; docs/evaluation.md) rewards a solid
 occupancy whose boundary is the surface. :func:`solidify` makes one from the field alone
-(no knowledge of the scene), in four documented steps applied identically to every scene:
+(no knowledge of the scene), in documented steps applied identically to every scene:
 
 1. **threshold**: occupied = |σ| / max|σ| > ``threshold`` (the evaluation's min–max τ);
 2. **drop floaters**: keep the 26-connected components holding at least ``min_fraction`` of
@@ -24,6 +24,16 @@ occupancy whose boundary is the surface. :func:`solidify` makes one from the fie
    (:func:`hidden_from`). With ``quorum`` q < 1, hidden from at least a fraction q of the
    sensors is enough: a cavity glimpsed only through the pores of a porous shell by a few
    sensors is filled too.
+6. **fill open cavities without a floor** (with ``cavity_floor`` > 0, metres): an *open
+   cavity* is a connected set of empty voxels that the solid encloses within their
+   horizontal slice (a box without its top, a cup): open upward. Its floor voxels are the
+   cavity voxels resting on an occupied one. A floor voxel is *supported* when a voxel of the
+   thresholded field (steps 1–3, the data) or, with ``floor``, the ground lies within
+   ``cavity_floor`` below it. A cavity with fewer than half of its floor voxels supported is
+   filled (:func:`floorless_cavities`): its floor is the level down to which step 5 filled,
+   not a surface the scan saw, so the field holds no evidence of an opening there; a real
+   container shows its floor. Made for the cube, whose top face the field barely holds
+   (docs/reconstruction.md "Open cavities without a floor").
 
 What it does to other objects: an open object (a bowl open upward, an arch, a tube open at an
 end) keeps its opening, because its inside is joined to the boundary through it, and is not
@@ -40,7 +50,8 @@ import numpy as np
 
 from sonarsim.errors import InputError
 
-DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0, quorum=1.0)
+DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0, quorum=1.0,
+                cavity_floor=0.0)
 
 
 def _ndimage():
@@ -172,6 +183,12 @@ def check_parameters(threshold: float, min_fraction: float, close, *,
         raise InputError(f"{names[2]}: must be an integer {bound}, got {close}")
 
 
+def check_cavity_floor(cavity_floor: float, name: str = "solid cavity_floor") -> None:
+    """Step 6's support distance is a finite number of metres >= 0 (one-line InputError)."""
+    if not (np.isfinite(cavity_floor) and cavity_floor >= 0):
+        raise InputError(f"{name}: must be a finite number of metres >= 0, got {cavity_floor}")
+
+
 def check_quorum(quorum: float, name: str = "solid quorum") -> None:
     """The hidden-voxel quorum is a fraction in (0, 1] (one-line InputError otherwise)."""
     if not (np.isfinite(quorum) and 0 < quorum <= 1):
@@ -182,13 +199,15 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              min_fraction: float = DEFAULTS["min_fraction"], close: int = DEFAULTS["close"],
              floor: bool = DEFAULTS["floor"], hidden: int = DEFAULTS["hidden"],
              sensors: np.ndarray | None = None, bounds=None,
-             quorum: float = DEFAULTS["quorum"]) -> np.ndarray:
+             quorum: float = DEFAULTS["quorum"],
+             cavity_floor: float = DEFAULTS["cavity_floor"]) -> np.ndarray:
     """bool [nx, ny, nz]: the solid occupancy of a reconstructed field (module docstring).
 
     volume: complex or real [nx, ny, nz] (z the vertical axis, index 0 the lowest plane).
     hidden: sensor positions to test visibility from (0 = step 5 off); sensors: [N, 3] the
     scan's sensor positions (m) and bounds [3, 2] the volume's box (m), both needed with
-    ``hidden`` > 0; quorum: the fraction of those sensors a voxel must be hidden from.
+    ``hidden`` > 0; quorum: the fraction of those sensors a voxel must be hidden from;
+    cavity_floor: step 6's support distance in metres (0 = step 6 off; needs ``bounds``).
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
@@ -197,17 +216,59 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     if int(hidden) != hidden or hidden < 0:
         raise InputError(f"solid hidden: must be an integer >= 0, got {hidden}")
     check_quorum(quorum)
+    check_cavity_floor(cavity_floor)
+    if int(hidden) > 0 and (sensors is None or bounds is None):
+        raise InputError("solid extraction: hidden > 0 needs the sensor positions and the bounds")
+    if cavity_floor > 0 and bounds is None:
+        raise InputError("solid extraction: cavity_floor > 0 needs the bounds")
     occupied = occupancy(volume, threshold)
     occupied = drop_small_components(occupied, min_fraction)
-    occupied = close_gaps(occupied, int(close))
-    occupied = fill_enclosed(occupied, bool(floor))
-    if int(hidden) <= 0:
+    data = close_gaps(occupied, int(close))
+    occupied = fill_enclosed(data, bool(floor))
+    if int(hidden) <= 0 and not cavity_floor > 0:
         return occupied
-    if sensors is None or bounds is None:
-        raise InputError("solid extraction: hidden > 0 needs the sensor positions and the bounds")
     bounds = np.asarray(bounds, dtype=np.float64)
     n = np.array(volume.shape)
     spacing = (bounds[:, 1] - bounds[:, 0]) / np.maximum(n - 1, 1)
-    relative = np.asarray(sensors, dtype=np.float64) - bounds[:, 0]
-    occupied = occupied | hidden_from(occupied, spacing, relative, int(hidden), float(quorum))
-    return fill_enclosed(occupied, bool(floor))
+    if int(hidden) > 0:
+        relative = np.asarray(sensors, dtype=np.float64) - bounds[:, 0]
+        occupied = occupied | hidden_from(occupied, spacing, relative, int(hidden), float(quorum))
+        occupied = fill_enclosed(occupied, bool(floor))
+    if cavity_floor > 0:
+        reach = int(round(cavity_floor / spacing[2])) if spacing[2] > 0 else 0
+        occupied = fill_enclosed(occupied | floorless_cavities(occupied, data, reach, bool(floor)),
+                                 bool(floor))
+    return occupied
+
+
+def floorless_cavities(occupied: np.ndarray, data: np.ndarray, reach: int,
+                       ground: bool = True) -> np.ndarray:
+    """bool like ``occupied``: the open cavities of step 6 whose floor the data do not show.
+
+    Open cavity: a 6-connected set of empty voxels each enclosed by ``occupied`` within its own
+    z slice (2-D hole filling slice by slice). Floor voxels: its voxels whose lower neighbour
+    is occupied; supported where a voxel of ``data`` (the thresholded field) lies 1..``reach``
+    voxels below, or, with ``ground``, where the grid's lowest plane does (the ground). A
+    cavity is returned when fewer than half of its floor voxels are supported (one without
+    floor voxels stays open)."""
+    ndimage = _ndimage()
+    occupied = np.asarray(occupied, dtype=bool)
+    data = np.asarray(data, dtype=bool)
+    cavity = np.zeros_like(occupied)
+    for k in range(occupied.shape[2]):
+        cavity[:, :, k] = ndimage.binary_fill_holes(occupied[:, :, k]) & ~occupied[:, :, k]
+    labels, count = ndimage.label(cavity)
+    if count == 0:
+        return cavity
+    floor_voxels = np.zeros_like(cavity)
+    floor_voxels[:, :, 1:] = cavity[:, :, 1:] & occupied[:, :, :-1]
+    reach = max(int(reach), 0)
+    supported = np.zeros_like(cavity)
+    for d in range(1, min(reach, occupied.shape[2] - 1) + 1):
+        supported[:, :, d:] |= data[:, :, :-d]
+    if ground:      # the lowest plane (the ground) lies 1..reach below planes 1..reach
+        supported[:, :, :reach + 1] = True
+    total = np.bincount(labels[floor_voxels], minlength=count + 1)
+    held = np.bincount(labels[floor_voxels & supported], minlength=count + 1)
+    floorless = np.flatnonzero((total > 0) & (held < 0.5 * total))
+    return np.isin(labels, floorless[floorless > 0])

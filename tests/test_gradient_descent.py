@@ -328,6 +328,9 @@ def test_frozen_presets_are_every_entry_points_default():
     # (0.8 closed a held-out arch's tunnel in GD's solid; measured, docs)
     assert (solver.PRESETS["nbp"]["solid_hidden_quorum"],
             solver.PRESETS["gd"]["solid_hidden_quorum"]) == (0.8, 1.0)
+    # NBP fills open cavities with no data floor within 2 cm (the cube's top); GD: not measured
+    assert (solver.PRESETS["nbp"]["solid_cavity_floor"],
+            solver.PRESETS["gd"]["solid_cavity_floor"]) == (0.02, 0.0)
     # both close gaps by 3 voxels (≈ the Table-2 range resolution; measured, docs)
     assert solver.PRESETS["gd"]["solid_close"] == solver.PRESETS["nbp"]["solid_close"] == 3
     assert nbp.settings_for().solid_close == gd.settings_for().solid_close == 3

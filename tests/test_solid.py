@@ -255,3 +255,85 @@ def test_hidden_fill_on_a_grid_one_voxel_thick():
     expected = solid.solidify(vol, threshold=0.5, close=0, hidden=3, sensors=sensors, bounds=thick)
     assert np.array_equal(got, expected)
     assert got[4:11, 4:11, 0].all() and got.sum() > (vol > 0.5).sum()
+
+
+# Step 6: open cavities whose floor the data do not show. A square box of walls (x, y in
+# 10..29, walls 2 voxels thick) standing on the ground, 1 cm voxels; sensors on a ring 3 m
+# away, 10°–40° above the box's half height, so step 5 fills the box's lower part (hidden
+# from every sensor) and leaves an open cavity under the rim.
+def _walls(top=30):
+    box = np.zeros((N, N, N), dtype=bool)
+    box[10:30, 10:30, 0:top] = True
+    box[12:28, 12:28, 0:top] = False
+    return box
+
+
+def _ring_sensors(count=64):
+    az = np.linspace(0, 2 * np.pi, count, endpoint=False)
+    el = np.deg2rad(np.linspace(10, 40, count))
+    centre = np.array([0.195, 0.195, 0.15])
+    return centre + 3.0 * np.stack([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el),
+                                    np.sin(el)], axis=1)
+
+
+BOUNDS = np.array([[0.0, 0.39]] * 3)          # 1 cm voxels
+
+
+def _solid(field, **kw):
+    return solid.solidify(field, threshold=0.5, close=0, hidden=64, sensors=_ring_sensors(),
+                          bounds=BOUNDS, **kw)
+
+
+def test_open_box_without_a_floor_in_the_data_is_filled_to_its_rim():
+    walls = _walls()
+    base = _solid(_as_field(walls))
+    inside = np.zeros_like(walls)
+    inside[12:28, 12:28, 0:30] = True
+    k = np.indices(walls.shape)[2]
+    lower, upper = inside & (k < 13), inside & (k >= 25)
+    assert base[lower].all() and not base[upper].any()       # step 5 alone: an open cavity
+    filled = _solid(_as_field(walls), cavity_floor=0.03)
+    assert filled[inside].all()                               # step 6: filled up to the rim
+    assert not filled[:, :, 30:].any()                        # and not above it
+
+
+def test_container_with_its_floor_in_the_data_stays_open():
+    """A tray: the same walls 8 voxels high with a floor plate (data) 2 voxels thick above
+    the ground; its cavity's floor voxels rest on the plate, so step 6 keeps it open."""
+    tray = _walls(top=8)
+    tray[12:28, 12:28, 2:4] = True
+    field = _as_field(tray)
+    kept = _solid(field, cavity_floor=0.03)
+    assert np.array_equal(kept, _solid(field))
+    assert not kept[13:27, 13:27, 4:8].any()
+
+
+def test_floorless_cavities_counts_support_within_reach():
+    walls = _walls()
+    occupied = walls.copy()
+    occupied[12:28, 12:28, :20] = True                        # a fill level at k = 20
+    data = walls.copy()
+    cavity = np.zeros_like(walls)
+    cavity[12:28, 12:28, 20:30] = True
+    assert np.array_equal(solid.floorless_cavities(occupied, data, 3), cavity)
+    data[12:28, 12:28, 17] = True                             # a data plate 3 below the floor
+    assert not solid.floorless_cavities(occupied, data, 3).any()
+    assert np.array_equal(solid.floorless_cavities(occupied, data, 2), cavity)
+    # the ground counts as a floor within reach: a fill level at k = 2
+    low = walls.copy()
+    low[12:28, 12:28, :2] = True
+    assert not solid.floorless_cavities(low, walls, 2).any()
+    assert solid.floorless_cavities(low, walls, 2, ground=False).any()
+    # a ring on the ground (no floor voxels at all) stays open
+    assert not solid.floorless_cavities(walls, walls, 3).any()
+
+
+@pytest.mark.parametrize("value", [-0.01, float("nan"), float("inf")])
+def test_cavity_floor_out_of_range_is_refused(value):
+    with pytest.raises(InputError, match="cavity_floor"):
+        solid.solidify(np.ones((4, 4, 4)), bounds=BOUNDS, cavity_floor=value)
+
+
+def test_cavity_floor_needs_bounds():
+    with pytest.raises(InputError, match="bounds"):
+        solid.solidify(np.ones((4, 4, 4)), cavity_floor=0.02)

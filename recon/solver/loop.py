@@ -222,7 +222,8 @@ def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarra
                               min_fraction=settings.solid_min_fraction,
                               close=int(settings.solid_close), floor=settings.solid_ground,
                               hidden=int(settings.solid_hidden), sensors=sensors, bounds=bounds,
-                              quorum=float(settings.solid_hidden_quorum))
+                              quorum=float(settings.solid_hidden_quorum),
+                              cavity_floor=float(settings.solid_cavity_floor))
     above = int(np.count_nonzero(solid.occupancy(field, settings.solid_threshold)))
     return occupied.astype(np.complex64), above
 
