@@ -328,9 +328,8 @@ def test_frozen_presets_are_every_entry_points_default():
     # (0.8 closed a held-out arch's tunnel in GD's solid; measured, docs)
     assert (solver.PRESETS["nbp"]["solid_hidden_quorum"],
             solver.PRESETS["gd"]["solid_hidden_quorum"]) == (0.8, 1.0)
-    # NBP fills open cavities with no data floor within 2 cm (the cube's top); GD: not measured
-    assert (solver.PRESETS["nbp"]["solid_cavity_floor"],
-            solver.PRESETS["gd"]["solid_cavity_floor"]) == (0.02, 0.0)
+    # both fill open cavities with no data floor within 2 cm (the cube's top; measured, docs)
+    assert solver.PRESETS["nbp"]["solid_cavity_floor"] == solver.PRESETS["gd"]["solid_cavity_floor"] == 0.02
     # both close gaps by 3 voxels (≈ the Table-2 range resolution; measured, docs)
     assert solver.PRESETS["gd"]["solid_close"] == solver.PRESETS["nbp"]["solid_close"] == 3
     assert nbp.settings_for().solid_close == gd.settings_for().solid_close == 3
@@ -345,10 +344,11 @@ def test_solid_output_is_the_solid_of_the_same_run(point_ds):
     field = gd.solve(point_ds, g, iterations=6, seed=1, progress=False, **small)
     out = gd.solve(point_ds, g, iterations=6, seed=1, progress=False,
                    **dict(small, output="solid", solid_threshold=0.3, solid_close=0))
-    # step 5 (the preset's solid_hidden) from the scan's sensor positions, the tx–rx midpoints
+    # step 5 (the preset's solid_hidden) from the scan's sensor positions, the tx–rx midpoints,
+    # and step 6 (the preset's solid_cavity_floor)
     expected = solid.solidify(field.volume, threshold=0.3, min_fraction=0.1, close=0, floor=True,
                               hidden=256, sensors=0.5 * (point_ds.tx + point_ds.rx),
-                              bounds=g.bounds, quorum=1.0)
+                              bounds=g.bounds, quorum=1.0, cavity_floor=0.02)
     assert 0 < expected.sum() < expected.size
     np.testing.assert_array_equal(out.volume, expected.astype(np.complex64))
     assert out.params["solid_voxels"] == int(expected.sum())
