@@ -176,8 +176,8 @@ def test_presets_and_cli_rejects_bad_values(point_ds, tmp_path, capsys):
     d = gd.settings_for(None)
     assert (d.lambertian, d.occlusion_scale, d.sparsity, d.init, d.lr_units, d.prior_units) == (
         False, 0.0, 2.0, "bp", "relative", "energy")
-    n = nbp.settings_for(None)   # occlusion, no Lambertian factor (since 2026-11-28), no priors
-    assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (False, 500.0, 0.0, 500)
+    n = nbp.settings_for(None)   # occlusion 100, no Lambertian factor (both since 2026-11-28), no priors
+    assert (n.lambertian, n.occlusion_scale, n.sparsity, n.reg_start) == (False, 100.0, 0.0, 500)
     with pytest.raises(InputError):
         gd.settings_for("nope")
     with pytest.raises(InputError):

@@ -208,12 +208,14 @@ HELP = {
 
 # Start values of the network (overriding the voxel defaults above): the configuration
 # measured on the bunny (docs/reconstruction.md); no Lambertian factor since 2026-11-28 (it
-# put a lid over shallow cavities; docs "The Lambertian factor and the lid"). Adam's step on
+# put a lid over shallow cavities; docs "The Lambertian factor and the lid"); occlusion scale 100
+# since 2026-11-28 (500 before: it raised a cap over the cylinder's top; docs "The occlusion
+# scale"). Adam's step on
 # the network's weights is absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
 # too many for a CPU, so the network is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
-                        occlusion_scale=500.0, sparsity=0.0, reg_start=500,
+                        occlusion_scale=100.0, sparsity=0.0, reg_start=500,
                         solid_threshold=0.3, solid_hidden_quorum=0.8, solid_cavity_floor=0.02)
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
