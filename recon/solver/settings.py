@@ -98,9 +98,8 @@ class SolverSettings(NetworkSettings):
                          max_close=10)
         if int(self.solid_hidden) != self.solid_hidden or not 0 <= self.solid_hidden <= 4096:
             raise InputError(f"solid_hidden: must be an integer in [0, 4096], got {self.solid_hidden}")
-        from ..solid import check_quorum
+        from ..solid import check_cavity_floor, check_quorum
         check_quorum(self.solid_hidden_quorum, "solid_hidden_quorum")
-        from ..solid import check_cavity_floor
         check_cavity_floor(self.solid_cavity_floor, "solid_cavity_floor")
         if not 0 < self.beamwidth_deg <= 360:
             raise InputError(f"beamwidth_deg: must be in (0, 360], got {self.beamwidth_deg}")
@@ -208,15 +207,15 @@ HELP = {
 
 # Start values of the network (overriding the voxel defaults above): the configuration
 # measured on the bunny (docs/reconstruction.md); no Lambertian factor since 2026-11-28 (it
-# put a lid over shallow cavities; docs "The Lambertian factor and the lid"); occlusion scale 100
-# since 2026-11-28 (500 before: it raised a cap over the cylinder's top; docs "The occlusion
-# scale"). Adam's step on
-# the network's weights is absolute; the reference uses lr 1e-4 from a cold start and 26 000 single-ping steps, far
-# too many for a CPU, so the network is first fitted to the scaled backprojection.
+# put a lid over shallow cavities; docs "The Lambertian factor and the lid"); occlusion scale
+# 100 since 2026-11-28 (500 before: it raised a cap over the cylinder's top; docs "The
+# occlusion scale"). Adam's step on the network's weights is absolute; the reference uses lr
+# 1e-4 from a cold start and 26 000 single-ping steps, far too many for a CPU, so the network
+# is first fitted to the scaled backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
                         occlusion_scale=100.0, sparsity=0.0, reg_start=500,
-                        solid_threshold=0.3, solid_hidden_quorum=0.8, solid_cavity_floor=0.02)
+                        solid_threshold=0.3, solid_hidden_quorum=0.8)
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
 # matters written out, so a change of a field's default above cannot move them; which scenes
