@@ -122,6 +122,28 @@ def test_checkpoint_resume_equals_uninterrupted_run(point_ds, tmp_path):
                   resume=True, **kw)
 
 
+def test_stratified_run_interrupted_and_resumed_equals_uninterrupted_run(point_ds, tmp_path):
+    """The stratified ping schedule is drawn from the seed alone, so a run stopped after its
+    checkpoint and resumed draws the same pings as one that never stopped."""
+    _skip_on_gpu()
+    g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
+    kw = dict(TINY, iterations=6, seed=2, deterministic=True, ping_sampling="stratified",
+              progress=False)
+    straight = nbp.solve(point_ds, g, **kw)
+    ck = tmp_path / "run.npz"
+
+    def stop(iteration, record):
+        if iteration == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        nbp.solve(point_ds, g, checkpoint=ck, checkpoint_every=3, callback=stop, **kw)
+    resumed = nbp.solve(point_ds, g, checkpoint=ck, resume=True, **kw)
+    assert np.array_equal(resumed.volume, straight.volume)
+    uniform = nbp.solve(point_ds, g, **dict(kw, ping_sampling="uniform"))
+    assert not np.array_equal(uniform.volume, straight.volume)
+
+
 @pytest.mark.parametrize("solver", ["nbp", "gd"])
 def test_default_runs_do_not_depend_on_thread_count(point_ds, solver):
     """A seed fixes the run by default (no option needed), for the network and the voxels."""

@@ -156,7 +156,7 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
     for it in range(start, settings.iterations):
         if at_iteration is not None:
             at_iteration(it)
-        pings, bins, roll = sampler.draw()
+        pings, bins, roll = sampler.draw(it)
         reg_on = it >= settings.reg_start
         need_u = reg_on and (settings.smoothness > 0 or settings.phase > 0
                              or settings.surface_tv > 0)

@@ -33,6 +33,7 @@ class SolverSettings(NetworkSettings):
     n_rays: int = 2000
     beamwidth_deg: float = 30.0
     sampling_uniformity: float = 1.0
+    ping_sampling: str = "uniform"
     scale_factor: float = 10.0
     data: str = "auto"
     incoherent: bool = False
@@ -122,6 +123,7 @@ def applies_to(name: str, network: bool) -> bool:
 
 
 CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
+           "ping_sampling": ("uniform", "stratified"),
            "prior_units": ("energy", "peak"),
            "data": ("auto", "matched", "analytic", "deconvolved"), "output": ("field", "solid")}
 
@@ -142,6 +144,10 @@ HELP = {
     "n_rays": "rays in the TX cone per ping",
     "beamwidth_deg": "TX cone full angle, degrees",
     "sampling_uniformity": "bins are drawn with p ∝ |target|^u",
+    "ping_sampling": "'uniform': each step draws its pings at random from the whole scan; "
+                     "'stratified': the run's pings are spread evenly over the scan order "
+                     "(every ping once per pass; fewer draws than pings: one per equal "
+                     "contiguous stratum), then shuffled",
     "scale_factor": "targets are normalised to max 1, then multiplied by this",
     "data": "targets: 'auto' (deconvolved if the dataset is, else matched), 'matched' "
             "(matched-filtered analytic signal), 'deconvolved', 'analytic' (raw analytic signal)",
