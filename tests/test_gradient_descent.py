@@ -330,6 +330,10 @@ def test_frozen_presets_are_every_entry_points_default():
             solver.PRESETS["gd"]["solid_hidden_quorum"]) == (0.8, 1.0)
     # both fill open cavities with no data floor within 2 cm (the cube's top; measured, docs)
     assert solver.PRESETS["nbp"]["solid_cavity_floor"] == solver.PRESETS["gd"]["solid_cavity_floor"] == 0.02
+    # NBP spreads its 1 500 pings evenly over the scan (a uniform draw let the full-size cube's
+    # seed 2 fail; measured, docs "Stratified pings"); GD keeps the uniform draw (not measured)
+    assert (solver.PRESETS["nbp"]["ping_sampling"], solver.PRESETS["gd"]["ping_sampling"]) == (
+        "stratified", "uniform")
     # both close gaps by 3 voxels (≈ the Table-2 range resolution; measured, docs)
     assert solver.PRESETS["gd"]["solid_close"] == solver.PRESETS["nbp"]["solid_close"] == 3
     assert nbp.settings_for().solid_close == gd.settings_for().solid_close == 3

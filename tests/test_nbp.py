@@ -45,10 +45,12 @@ def test_cli_two_iterations_then_loss_falls(point_ds, tmp_path, capsys):
     assert np.isfinite(vol.params["final_loss"])
     losses = []
     nbp.solve(point_ds, Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9)),
-              iterations=30, seed=3, progress=False, lambertian=False, occlusion_scale=0.0,
+              iterations=60, seed=3, progress=False, lambertian=False, occlusion_scale=0.0,
               callback=lambda i, r: losses.append(r["data"]), **dict(TINY, lr=1e-2, lr_final=None))
     assert all(np.isfinite(losses))
-    assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3])
+    # 60 steps: last tenth / first twelfth 0.59-0.66 over seeds 1-5 and both ping draws (30
+    # steps with the last 5 against the first 3 gave 0.80-0.95: a coin toss at 0.8)
+    assert np.mean(losses[-10:]) < 0.75 * np.mean(losses[:5])
     # The volume's convergence record (mean data loss per tenth of the steps; 2 steps: 2
     # values) is what the command reports.
     tenths = vol.params["data_loss_by_tenth"]
@@ -100,7 +102,9 @@ def _skip_on_gpu():
 def test_checkpoint_resume_equals_uninterrupted_run(point_ds, tmp_path):
     _skip_on_gpu()
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
-    kw = dict(TINY, lr_final=None, deterministic=True, sparsity=0.5, reg_start=3)
+    # a constant learning rate and the uniform ping draw let a run be extended (4 -> 6 steps)
+    kw = dict(TINY, lr_final=None, deterministic=True, sparsity=0.5, reg_start=3,
+              ping_sampling="uniform")
     ck = tmp_path / "run.npz"
     straight = nbp.solve(point_ds, g, iterations=6, seed=1, progress=False, **kw)
     nbp.solve(point_ds, g, iterations=4, seed=1, progress=False, checkpoint=ck,
@@ -128,7 +132,7 @@ def test_stratified_run_interrupted_and_resumed_equals_uninterrupted_run(point_d
     _skip_on_gpu()
     g = Grid([[-0.02, 0.02], [-0.02, 0.02], [0.08, 0.12]], (9, 9, 9))
     kw = dict(TINY, iterations=6, seed=2, deterministic=True, ping_sampling="stratified",
-              progress=False)
+              lr_final=None, progress=False)
     straight = nbp.solve(point_ds, g, **kw)
     ck = tmp_path / "run.npz"
 
@@ -142,6 +146,9 @@ def test_stratified_run_interrupted_and_resumed_equals_uninterrupted_run(point_d
     assert np.array_equal(resumed.volume, straight.volume)
     uniform = nbp.solve(point_ds, g, **dict(kw, ping_sampling="uniform"))
     assert not np.array_equal(uniform.volume, straight.volume)
+    # the schedule spreads the pings of exactly this many steps: no extension on resume
+    with pytest.raises(InputError, match="stratified ping schedule is for 6 iterations"):
+        nbp.solve(point_ds, g, checkpoint=ck, resume=True, **dict(kw, iterations=8))
 
 
 @pytest.mark.parametrize("solver", ["nbp", "gd"])

@@ -85,6 +85,9 @@ def load_checkpoint(path, opt: Adam, rng, identity, settings):
     if settings.lr_final is not None and saved_iterations != settings.iterations:
         raise InputError(f"{path}: checkpoint's learning-rate schedule is for {saved_iterations} "
                          f"iterations, this run has {settings.iterations}")
+    if settings.ping_sampling == "stratified" and saved_iterations != settings.iterations:
+        raise InputError(f"{path}: checkpoint's stratified ping schedule is for {saved_iterations} "
+                         f"iterations, this run has {settings.iterations}")
     if iteration > settings.iterations:
         raise InputError(f"{path}: checkpoint is at iteration {iteration}, past --iterations "
                          f"{settings.iterations}")
