@@ -217,13 +217,15 @@ HELP = {
 # put a lid over shallow cavities; docs "The Lambertian factor and the lid"); occlusion scale
 # 100 since 2026-11-28 (500 before: it raised a cap over the cylinder's top; docs "The
 # occlusion scale"); pings stratified over the scan since 2026-11-28 (a uniform draw of
-# 1 500 of 54 000 pings let a full-size seed fail; docs "Stratified pings"). Adam's step on the network's weights is absolute; the reference uses lr
-# 1e-4 from a cold start and 26 000 single-ping steps, far too many for a CPU, so the network
-# is first fitted to the scaled backprojection.
+# 1 500 of 54 000 pings let a full-size seed fail; docs "Stratified pings"). Adam's step on
+# the network's weights is absolute; the reference uses lr 1e-4 from a cold start and 26 000
+# single-ping steps, far too many for a CPU, so the network is first fitted to the scaled
+# backprojection.
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
                         occlusion_scale=100.0, sparsity=0.0, reg_start=500,
-                        solid_threshold=0.3, solid_hidden_quorum=0.8, ping_sampling="stratified")
+                        solid_threshold=0.3, solid_hidden_quorum=0.8,
+                        ping_sampling="stratified")
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
 # matters written out, so a change of a field's default above cannot move them; which scenes
@@ -241,7 +243,8 @@ SOLID = dict(output="solid", solid_min_fraction=0.1, solid_close=3, solid_ground
 
 PRESETS = {
     "gd": dict(iterations=1000, lr=2e-2, lr_final=2e-3, lr_units="relative", init="bp",
-               pings_per_iteration=5, pings_per_chunk=0, ping_sampling="uniform", bins_per_ping=110, n_rays=2000,
+               pings_per_iteration=5, pings_per_chunk=0, ping_sampling="uniform",
+               bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
                reg_start=200, **SOLID, solid_threshold=0.5, solid_hidden_quorum=1.0),
