@@ -77,21 +77,21 @@ class Sampler:
                  settings: SolverSettings, rng: np.random.Generator):
         self.tgt, self.first, self.last, self.s, self.rng = tgt, first, last, settings, rng
         self.active = np.flatnonzero(last >= first)
-        self._schedule = None
         if len(self.active) == 0:
             raise InputError("no ping's echo window overlaps the grid: check bounds and dataset")
+        self.schedule = (stratified_pings(self.active,
+                                          settings.iterations * settings.pings_per_iteration,
+                                          np.random.default_rng([settings.seed, 2]))
+                         if settings.ping_sampling == "stratified" else None)
 
     def draw(self, iteration: int | None = None):
         """(pings [P], bins [P, K] sorted per ping, roll [P] radians). With ``ping_sampling``
         'stratified' and an ``iteration``, the pings are that iteration's share of
         :func:`stratified_pings`; otherwise P pings drawn uniformly."""
         s, rng = self.s, self.rng
-        if s.ping_sampling == "stratified" and iteration is not None:
-            if self._schedule is None:
-                self._schedule = stratified_pings(self.active, s.iterations * s.pings_per_iteration,
-                                                  np.random.default_rng([s.seed, 2]))
-            pings = self._schedule[iteration * s.pings_per_iteration:
-                                   (iteration + 1) * s.pings_per_iteration]
+        if self.schedule is not None and iteration is not None:
+            pings = self.schedule[iteration * s.pings_per_iteration:
+                                  (iteration + 1) * s.pings_per_iteration]
         else:
             pings = rng.choice(self.active, size=s.pings_per_iteration,
                                replace=len(self.active) < s.pings_per_iteration)
