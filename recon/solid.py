@@ -7,7 +7,13 @@ Chamfer of the thresholded occupancy's surface; docs/evaluation.md) rewards a so
 occupancy whose boundary is the surface. :func:`solidify` makes one from the field alone
 (no knowledge of the scene), in documented steps applied identically to every scene:
 
-1. **threshold**: occupied = |σ| / max|σ| > ``threshold`` (the evaluation's min–max τ);
+1. **threshold**: occupied = m > ``threshold`` with m = |σ| / max|σ| (the evaluation's
+   min–max τ). Two options, both scale-free: ``blur`` > 0 smooths |σ| first with a Gaussian of
+   that many voxels (σ of the kernel; m is then the smoothed magnitude over its maximum), and
+   ``threshold_mode="otsu"`` reads ``threshold`` as a factor on the Otsu level of m (Otsu's
+   two-class split, ``skimage.filters.threshold_otsu``, of the voxels with m > 0.02), so the
+   cut follows the field's own background/surface split instead of a fixed fraction of its
+   brightest voxel (:func:`threshold_level`);
 2. **drop floaters**: keep the 26-connected components holding at least ``min_fraction`` of
    the largest one's voxels;
 3. **close gaps**: a morphological closing by ``close`` voxels (a 6-connected ball), so a shell
@@ -51,7 +57,11 @@ import numpy as np
 from sonarsim.errors import InputError
 
 DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0, quorum=1.0,
-                cavity_floor=0.0)
+                cavity_floor=0.0, blur=0.0, threshold_mode="peak")
+THRESHOLD_MODES = ("peak", "otsu")
+# The Otsu level is taken over the voxels above this fraction of the peak: the empty box
+# (most of the grid, |σ| ≈ 0) would otherwise be one of the two classes.
+OTSU_FLOOR = 0.02
 
 
 def _ndimage():
@@ -68,6 +78,40 @@ def occupancy(volume: np.ndarray, threshold: float) -> np.ndarray:
     if not peak > 0:
         return np.zeros(mag.shape, dtype=bool)
     return mag > threshold * peak
+
+
+def thresholded(volume: np.ndarray, threshold: float, blur: float = 0.0,
+                mode: str = "peak") -> np.ndarray:
+    """bool [nx, ny, nz]: step 1, the relative magnitude (:func:`relative_magnitude`) above
+    its cut (:func:`threshold_level`)."""
+    if not blur > 0 and mode == "peak":
+        return occupancy(volume, threshold)       # the plain rule, bit for bit as before
+    relative = relative_magnitude(volume, blur)
+    return relative > threshold_level(relative, threshold, mode)
+
+
+def relative_magnitude(volume: np.ndarray, blur: float = 0.0) -> np.ndarray:
+    """float32 [nx, ny, nz]: |volume| (smoothed by a Gaussian of ``blur`` voxels when > 0)
+    over its maximum; all 0 for a zero volume."""
+    mag = np.abs(np.asarray(volume)).astype(np.float32)
+    if blur > 0:
+        mag = _ndimage().gaussian_filter(mag, float(blur))   # mirrored at the box faces
+    peak = float(mag.max()) if mag.size else 0.0
+    return mag / peak if peak > 0 else np.zeros_like(mag)
+
+
+def threshold_level(relative: np.ndarray, threshold: float, mode: str = "peak") -> float:
+    """The cut on the relative magnitude ``relative`` (max 1) of step 1: ``threshold`` itself
+    (mode 'peak'), or ``threshold`` × the Otsu level of the voxels above
+    :data:`OTSU_FLOOR` (mode 'otsu'; 1.0, i.e. nothing occupied, when fewer than two
+    distinct values lie above the floor)."""
+    if mode == "peak":
+        return float(threshold)
+    from skimage.filters import threshold_otsu
+    values = relative[relative > OTSU_FLOOR]
+    if values.size < 2 or float(values.min()) == float(values.max()):
+        return 1.0
+    return float(threshold) * float(threshold_otsu(values))
 
 
 def drop_small_components(occupied: np.ndarray, min_fraction: float) -> np.ndarray:
@@ -171,16 +215,28 @@ def hidden_from(occupied: np.ndarray, spacing, sensors: np.ndarray, count: int,
 
 def check_parameters(threshold: float, min_fraction: float, close, *,
                      names=("solid threshold", "solid min_fraction", "solid close"),
-                     max_close: int | None = None) -> None:
+                     max_close: int | None = None, mode: str = "peak") -> None:
     """The ranges of :func:`solidify`'s parameters (one-line InputError naming ``names``):
-    threshold in [0, 1), min_fraction in [0, 1], close an integer ≥ 0 (≤ ``max_close``)."""
-    if not 0 <= threshold < 1:
+    threshold in [0, 1) (mode 'peak') or a factor in (0, 1/OTSU_FLOOR) (mode 'otsu'),
+    min_fraction in [0, 1], close an integer ≥ 0 (≤ ``max_close``)."""
+    if mode not in THRESHOLD_MODES:
+        raise InputError(f"{names[0]} mode: choose one of {', '.join(THRESHOLD_MODES)}, got {mode!r}")
+    if mode == "peak" and not 0 <= threshold < 1:
         raise InputError(f"{names[0]}: must be in [0, 1), got {threshold}")
+    if mode == "otsu" and not 0 < threshold < 1 / OTSU_FLOOR:
+        raise InputError(f"{names[0]}: with the Otsu mode a factor in (0, {1 / OTSU_FLOOR:g}), "
+                         f"got {threshold}")
     if not 0 <= min_fraction <= 1:
         raise InputError(f"{names[1]}: must be in [0, 1], got {min_fraction}")
     if int(close) != close or close < 0 or (max_close is not None and close > max_close):
         bound = ">= 0" if max_close is None else f"in [0, {max_close}]"
         raise InputError(f"{names[2]}: must be an integer {bound}, got {close}")
+
+
+def check_blur(blur: float, name: str = "solid blur") -> None:
+    """The Gaussian's width is a finite number of voxels >= 0 (one-line InputError)."""
+    if not (np.isfinite(blur) and 0 <= blur <= 10):
+        raise InputError(f"{name}: must be a number of voxels in [0, 10], got {blur}")
 
 
 def check_cavity_floor(cavity_floor: float, name: str = "solid cavity_floor") -> None:
@@ -200,19 +256,23 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              floor: bool = DEFAULTS["floor"], hidden: int = DEFAULTS["hidden"],
              sensors: np.ndarray | None = None, bounds=None,
              quorum: float = DEFAULTS["quorum"],
-             cavity_floor: float = DEFAULTS["cavity_floor"]) -> np.ndarray:
+             cavity_floor: float = DEFAULTS["cavity_floor"],
+             blur: float = DEFAULTS["blur"],
+             threshold_mode: str = DEFAULTS["threshold_mode"]) -> np.ndarray:
     """bool [nx, ny, nz]: the solid occupancy of a reconstructed field (module docstring).
 
     volume: complex or real [nx, ny, nz] (z the vertical axis, index 0 the lowest plane).
     hidden: sensor positions to test visibility from (0 = step 5 off); sensors: [N, 3] the
     scan's sensor positions (m) and bounds [3, 2] the volume's box (m), both needed with
     ``hidden`` > 0; quorum: the fraction of those sensors a voxel must be hidden from;
-    cavity_floor: step 6's support distance in metres (0 = step 6 off; needs ``bounds``).
+    cavity_floor: step 6's support distance in metres (0 = step 6 off; needs ``bounds``);
+    blur (voxels) and threshold_mode ('peak' | 'otsu'): step 1's magnitude and cut.
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise InputError(f"solid extraction: expected a 3-D volume, got shape {volume.shape}")
-    check_parameters(threshold, min_fraction, close)
+    check_parameters(threshold, min_fraction, close, mode=threshold_mode)
+    check_blur(blur)
     if int(hidden) != hidden or hidden < 0:
         raise InputError(f"solid hidden: must be an integer >= 0, got {hidden}")
     check_quorum(quorum)
@@ -221,7 +281,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
         raise InputError("solid extraction: hidden > 0 needs the sensor positions and the bounds")
     if cavity_floor > 0 and bounds is None:
         raise InputError("solid extraction: cavity_floor > 0 needs the bounds")
-    occupied = occupancy(volume, threshold)
+    occupied = thresholded(volume, threshold, blur, threshold_mode)
     occupied = drop_small_components(occupied, min_fraction)
     data = close_gaps(occupied, int(close))
     occupied = fill_enclosed(data, bool(floor))

@@ -337,3 +337,77 @@ def test_cavity_floor_out_of_range_is_refused(value):
 def test_cavity_floor_needs_bounds():
     with pytest.raises(InputError, match="bounds"):
         solid.solidify(np.ones((4, 4, 4)), cavity_floor=0.02)
+
+
+# Step 1's options: a smoothed magnitude and a cut on the field's own Otsu level (the `gd`
+# preset's since 2026-11-28; docs/reconstruction.md "Smoothed magnitude, Otsu level").
+
+def _two_class(rng, n_background=4000, n_surface=1000):
+    """Relative magnitudes of two classes, background in [0.03, 0.15], surface in [0.6, 0.9],
+    plus many empty voxels (0) as in a reconstruction box."""
+    values = np.concatenate([rng.uniform(0.03, 0.15, n_background),
+                             rng.uniform(0.6, 0.9, n_surface), np.zeros(20000), [1.0]])
+    return values.reshape(1, 1, -1)
+
+
+def test_otsu_level_splits_the_two_classes_above_the_floor():
+    from skimage.filters import threshold_otsu
+    relative = _two_class(np.random.default_rng(1))
+    level = solid.threshold_level(relative, 1.0, "otsu")
+    assert 0.14 < level < 0.6          # between the classes (to a 256-bin histogram's resolution)
+    assert solid.threshold_level(relative, 2.0, "otsu") == pytest.approx(2 * level)
+    # the voxels at or below the floor take no part: more empty box, the same level
+    more_empty = np.concatenate([relative.ravel(), np.full(100000, 0.01)]).reshape(1, 1, -1)
+    assert solid.threshold_level(more_empty, 1.0, "otsu") == level
+    assert threshold_otsu(more_empty.ravel()) != level     # (they would move it)
+    assert solid.threshold_level(relative, 0.3, "peak") == 0.3
+
+
+def test_otsu_cut_follows_the_field_not_its_brightest_voxel():
+    shell, d, _ = _shell()
+    field = _as_field(shell, level=0.3)
+    field[0, 0, 39] = 1.0                       # a specular glint: the peak, far above the shell
+    peak_cut = solid.solidify(field, threshold=0.5, min_fraction=0.0, close=0)
+    # (the Otsu split of a large dim class and a small bright one lies at the dim class's top
+    # edge; hence a factor above 1, as the preset's 1.7)
+    otsu_cut = solid.solidify(field, threshold=1.5, threshold_mode="otsu", min_fraction=0.0, close=0)
+    assert not peak_cut[shell].any()            # half the glint is above the whole shell
+    assert otsu_cut[shell].all() and otsu_cut[d < 10].all()        # shell kept and filled
+    assert not otsu_cut[(d > 14) & (d < 18)].any()                  # background stays out
+    scaled = solid.solidify(field * 1e-3, threshold=1.5, threshold_mode="otsu", min_fraction=0.0,
+                            close=0)
+    assert (scaled == otsu_cut).all()           # scale-free
+
+
+def test_blur_closes_a_shell_speckled_voxel_by_voxel():
+    shell, d, _ = _shell()
+    rng = np.random.default_rng(0)
+    # half of the shell's voxels dark (above the cubic lattice's site-percolation threshold,
+    # 0.31): the dark voxels join the inside to the outside through the shell
+    speckle = np.where(rng.random(shell.shape) < 0.5, 1.0, 0.1)
+    field = np.where(shell, speckle, 0.02).astype(np.complex64)
+    raw = solid.solidify(field, threshold=0.2, min_fraction=0.0, close=0)
+    smooth = solid.solidify(field, threshold=0.2, min_fraction=0.0, close=0, blur=0.7)
+    assert not raw[d < 8].any()                 # porous: nothing filled
+    assert smooth[d < 8].all()                  # smoothed within ~2 voxels the shell is closed
+    assert not smooth[d > 15].any()
+
+
+def test_plain_rule_is_unchanged_without_blur_or_otsu():
+    shell = _shell()[0]
+    field = _as_field(shell)
+    assert (solid.thresholded(field, 0.3) == solid.occupancy(field, 0.3)).all()
+    assert solid.relative_magnitude(np.zeros((3, 3, 3)), 0.7).max() == 0
+    empty = solid.solidify(np.zeros((6, 6, 6)), threshold=1.7, threshold_mode="otsu", blur=0.7)
+    assert not empty.any()                      # nothing above the floor: nothing occupied
+
+
+@pytest.mark.parametrize("kw", [dict(blur=-1.0), dict(blur=float("nan")), dict(blur=11.0),
+                                dict(threshold_mode="mean"),
+                                dict(threshold=0.0, threshold_mode="otsu"),
+                                dict(threshold=60.0, threshold_mode="otsu")])
+def test_bad_blur_and_threshold_modes_are_refused(kw):
+    with pytest.raises(InputError):
+        solid.solidify(np.ones((4, 4, 4)), **kw)
+    # a factor above 1 is fine with the Otsu mode
+    solid.solidify(np.ones((4, 4, 4)), threshold=1.7, threshold_mode="otsu")

@@ -106,8 +106,12 @@ def run(args, network: bool) -> int:
                            checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
                            resume=args.resume, progress=not args.no_progress, **kw)
     what = "neural backprojection" if network else "gradient descent"
+    cut = (f"{vol.params.get('solid_level', settings.solid_threshold):.3g} of the peak"
+           + (f" = {settings.solid_threshold:g} x the Otsu level"
+              if settings.solid_threshold_mode == "otsu" else "")
+           + (f", |σ| smoothed by {settings.solid_blur:g} voxels" if settings.solid_blur > 0 else ""))
     solid = (f"; exported the solid occupancy ({vol.params['solid_voxels']} voxels, threshold "
-             f"{settings.solid_threshold}; --output field for the field)"
+             f"{cut}; --output field for the field)"
              if "solid_voxels" in vol.params else "")
     tenths = vol.params["data_loss_by_tenth"]
     trend = (f"; data loss {tenths[0]:.4g} -> {tenths[-1]:.4g} (means of the first and last "

@@ -212,20 +212,27 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
 
 
 def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarray | None = None,
-                 bounds=None) -> tuple[np.ndarray, int]:
+                 bounds=None) -> tuple[np.ndarray, int, float]:
     """(complex64 volume 1 inside the solid of ``field`` and 0 outside, voxels of the field
-    above the solid threshold): :func:`recon.solid.solidify` with the run's settings
+    above the solid threshold, that threshold as a fraction of the (smoothed) peak): :func:`recon.solid.solidify` with the run's settings
     (``sensors`` [N, 3] m: the scan's sensor positions, ``bounds`` [3, 2] m: the field's box,
-    both used by ``solid_hidden``)."""
+    both used by ``solid_hidden``). The count is of step 1's voxels (after the blur and
+    the threshold mode)."""
     from .. import solid
     occupied = solid.solidify(field, threshold=settings.solid_threshold,
                               min_fraction=settings.solid_min_fraction,
                               close=int(settings.solid_close), floor=settings.solid_ground,
                               hidden=int(settings.solid_hidden), sensors=sensors, bounds=bounds,
                               quorum=float(settings.solid_hidden_quorum),
-                              cavity_floor=float(settings.solid_cavity_floor))
-    above = int(np.count_nonzero(solid.occupancy(field, settings.solid_threshold)))
-    return occupied.astype(np.complex64), above
+                              cavity_floor=float(settings.solid_cavity_floor),
+                              blur=float(settings.solid_blur),
+                              threshold_mode=settings.solid_threshold_mode)
+    relative = solid.relative_magnitude(field, float(settings.solid_blur))
+    level = solid.threshold_level(relative, settings.solid_threshold, settings.solid_threshold_mode)
+    above = int(np.count_nonzero(solid.thresholded(field, settings.solid_threshold,
+                                                   float(settings.solid_blur),
+                                                   settings.solid_threshold_mode)))
+    return occupied.astype(np.complex64), above, level
 
 
 def make_scene(grid: Grid, settings: SolverSettings, network: bool):
@@ -270,7 +277,8 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     p = {k: v for k, v in asdict(settings).items() if applies_to(k, network)}
     if settings.output == "solid":
         sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
-        vol, p["field_occupied_voxels"] = solid_volume(vol, settings, sensors, out_grid.bounds)
+        vol, p["field_occupied_voxels"], p["solid_level"] = solid_volume(vol, settings, sensors,
+                                                                         out_grid.bounds)
         p["solid_voxels"] = int(np.count_nonzero(vol))
     p["preset"] = preset or "none"
     p["scene"] = scene.kind

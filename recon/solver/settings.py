@@ -62,13 +62,15 @@ class SolverSettings(NetworkSettings):
     sh_start: int = 0
     # the exported volume (both representations): the fitted field, or its solid (recon.solid)
     output: str = "solid"
-    solid_threshold: float = 0.5
+    solid_threshold: float = 1.7       # × the Otsu level of |σ| smoothed by solid_blur voxels
     solid_min_fraction: float = 0.1
     solid_close: int = 3
     solid_ground: bool = True
     solid_hidden: int = 256
     solid_hidden_quorum: float = 1.0
     solid_cavity_floor: float = 0.02
+    solid_blur: float = 0.7
+    solid_threshold_mode: str = "otsu"
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -96,10 +98,11 @@ class SolverSettings(NetworkSettings):
         from ..solid import check_parameters
         check_parameters(self.solid_threshold, self.solid_min_fraction, self.solid_close,
                          names=("solid_threshold", "solid_min_fraction", "solid_close"),
-                         max_close=10)
+                         max_close=10, mode=self.solid_threshold_mode)
         if int(self.solid_hidden) != self.solid_hidden or not 0 <= self.solid_hidden <= 4096:
             raise InputError(f"solid_hidden: must be an integer in [0, 4096], got {self.solid_hidden}")
-        from ..solid import check_cavity_floor, check_quorum
+        from ..solid import check_blur, check_cavity_floor, check_quorum
+        check_blur(self.solid_blur, "solid_blur")
         check_quorum(self.solid_hidden_quorum, "solid_hidden_quorum")
         check_cavity_floor(self.solid_cavity_floor, "solid_cavity_floor")
         if not 0 < self.beamwidth_deg <= 360:
@@ -125,7 +128,8 @@ def applies_to(name: str, network: bool) -> bool:
 CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
            "ping_sampling": ("uniform", "stratified"),
            "prior_units": ("energy", "peak"),
-           "data": ("auto", "matched", "analytic", "deconvolved"), "output": ("field", "solid")}
+           "data": ("auto", "matched", "analytic", "deconvolved"), "output": ("field", "solid"),
+           "solid_threshold_mode": ("peak", "otsu")}
 
 HELP = {
     "iterations": "optimiser steps",
@@ -193,7 +197,12 @@ HELP = {
                 "it the field is isotropic (c_00 only; SH-SAS raises the degree during training)",
     "output": "exported volume: 'field' (the fitted complex field) or 'solid' (its solid "
               "occupancy, 1 inside and 0 outside: recon.solid.solidify, docs/reconstruction.md)",
-    "solid_threshold": "solid: occupied where |σ|/max|σ| exceeds this",
+    "solid_threshold": "solid: occupied where |σ|/max|σ| exceeds this (threshold mode 'peak'), "
+                       "or this factor × the Otsu level of |σ|/max|σ| (mode 'otsu')",
+    "solid_threshold_mode": "solid: 'peak' (a fixed fraction of the peak) or 'otsu' (a factor "
+                            "on the field's own Otsu level: recon.solid step 1)",
+    "solid_blur": "solid: smooth |σ| with a Gaussian of this many voxels before the threshold "
+                  "(0 = off; recon.solid step 1)",
     "solid_min_fraction": "solid: drop connected parts smaller than this fraction of the largest "
                           "(floaters)",
     "solid_close": "solid: close gaps of the occupied set by this many voxels",
@@ -224,7 +233,8 @@ HELP = {
 NETWORK_DEFAULTS = dict(lr=5e-3, lr_final=5e-4, lr_units="absolute", init="bp",
                         warm_start_iterations=300, pings_per_chunk=1, lambertian=False,
                         occlusion_scale=100.0, sparsity=0.0, reg_start=500,
-                        solid_threshold=0.3, solid_hidden_quorum=0.8,
+                        solid_threshold=0.3, solid_threshold_mode="peak", solid_blur=0.0,
+                        solid_hidden_quorum=0.8,
                         ping_sampling="stratified")
 
 # Named sets. 'gd' / 'nbp': the frozen defaults of recon gd / recon nbp (every value that
@@ -247,7 +257,11 @@ PRESETS = {
                bins_per_ping=110, n_rays=2000,
                beamwidth_deg=30.0, scale_factor=10.0, lambertian=False, occlusion_scale=0.0,
                sparsity=2.0, prior_units="energy", smoothness=0.0, phase=0.0, tv=0.0,
-               reg_start=200, **SOLID, solid_threshold=0.5, solid_hidden_quorum=1.0),
+               reg_start=200, **SOLID, solid_hidden_quorum=1.0,
+               # voxels are independent, so |σ| is speckled voxel by voxel: smooth it within
+               # the range resolution, then cut at 1.7 × the field's Otsu level (2026-11-28;
+               # a fixed 0.5 of the peak until then; docs "Smoothed magnitude, Otsu level")
+               solid_blur=0.7, solid_threshold_mode="otsu", solid_threshold=1.7),
     # 300 steps after the 300-step BP warm start (1 000 until 2026-11-27: longer fits thin the
     # field and the solid loses; docs/reconstruction.md "Fit length")
     "nbp": dict(NETWORK_DEFAULTS, iterations=300, pings_per_iteration=5, pings_per_chunk=5,
@@ -256,7 +270,10 @@ PRESETS = {
                 hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
                 # hidden from 80 % of the sensors fills porous shells (2026-11-28; GD keeps 1:
                 # 0.8 closed a held-out arch's tunnel in its solid; docs "hidden-voxel quorum")
-                **SOLID, solid_threshold=0.3, solid_hidden_quorum=0.8),
+                **SOLID, solid_threshold=0.3, solid_hidden_quorum=0.8,
+                # the network's field is smooth already; a blur thickened its walls and the
+                # Otsu cut moved seeds both ways (docs "Smoothed magnitude, Otsu level")
+                solid_blur=0.0, solid_threshold_mode="peak"),
     "cpu": dict(pings_per_iteration=5, pings_per_chunk=5, bins_per_ping=64, n_rays=600,
                 hash_levels=12, mlp_width=32, mlp_hidden=1, iterations=1000),
     "reference": dict(pings_per_iteration=5, bins_per_ping=200, n_rays=4777, hash_levels=14,
