@@ -214,10 +214,9 @@ def _fit(dataset, grid, settings, scene, checkpoint, checkpoint_every, resume, p
 def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarray | None = None,
                  bounds=None) -> tuple[np.ndarray, int, float]:
     """(complex64 volume 1 inside the solid of ``field`` and 0 outside, voxels of the field
-    above the solid threshold, that threshold as a fraction of the (smoothed) peak):
+    above step 1's cut, that cut as a fraction of the (smoothed) peak):
     :func:`recon.solid.solidify` with the run's settings (``sensors`` [N, 3] m: the scan's
-    sensor positions, ``bounds`` [3, 2] m: the field's box, both used by ``solid_hidden``). The count is of step 1's voxels (after the blur and
-    the threshold mode)."""
+    sensor positions, ``bounds`` [3, 2] m: the field's box, both used by ``solid_hidden``)."""
     from .. import solid
     occupied = solid.solidify(field, threshold=settings.solid_threshold,
                               min_fraction=settings.solid_min_fraction,
