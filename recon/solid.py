@@ -84,10 +84,17 @@ def thresholded(volume: np.ndarray, threshold: float, blur: float = 0.0,
                 mode: str = "peak") -> np.ndarray:
     """bool [nx, ny, nz]: step 1, the relative magnitude (:func:`relative_magnitude`) above
     its cut (:func:`threshold_level`)."""
+    return step_one(volume, threshold, blur, mode)[0]
+
+
+def step_one(volume: np.ndarray, threshold: float, blur: float = 0.0,
+             mode: str = "peak") -> tuple[np.ndarray, float]:
+    """(step 1's bool [nx, ny, nz], its cut as a fraction of the (smoothed) peak)."""
     if not blur > 0 and mode == "peak":
-        return occupancy(volume, threshold)       # the plain rule, bit for bit as before
+        return occupancy(volume, threshold), float(threshold)   # the plain rule, bit for bit
     relative = relative_magnitude(volume, blur)
-    return relative > threshold_level(relative, threshold, mode)
+    level = threshold_level(relative, threshold, mode)
+    return relative > level, level
 
 
 def relative_magnitude(volume: np.ndarray, blur: float = 0.0) -> np.ndarray:

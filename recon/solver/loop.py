@@ -226,12 +226,9 @@ def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarra
                               cavity_floor=float(settings.solid_cavity_floor),
                               blur=float(settings.solid_blur),
                               threshold_mode=settings.solid_threshold_mode)
-    relative = solid.relative_magnitude(field, float(settings.solid_blur))
-    level = solid.threshold_level(relative, settings.solid_threshold, settings.solid_threshold_mode)
-    above = int(np.count_nonzero(solid.thresholded(field, settings.solid_threshold,
-                                                   float(settings.solid_blur),
-                                                   settings.solid_threshold_mode)))
-    return occupied.astype(np.complex64), above, level
+    above, level = solid.step_one(field, settings.solid_threshold, float(settings.solid_blur),
+                                  settings.solid_threshold_mode)
+    return occupied.astype(np.complex64), int(np.count_nonzero(above)), level
 
 
 def make_scene(grid: Grid, settings: SolverSettings, network: bool):
