@@ -10,6 +10,7 @@ import numpy as np
 from sonarsim.errors import InputError
 
 from ..field import NetworkSettings
+from ..solid import THRESHOLD_MODES
 
 
 @dataclass
@@ -129,7 +130,7 @@ CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
            "ping_sampling": ("uniform", "stratified"),
            "prior_units": ("energy", "peak"),
            "data": ("auto", "matched", "analytic", "deconvolved"), "output": ("field", "solid"),
-           "solid_threshold_mode": ("peak", "otsu")}
+           "solid_threshold_mode": THRESHOLD_MODES}
 
 HELP = {
     "iterations": "optimiser steps",
