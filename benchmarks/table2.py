@@ -268,7 +268,9 @@ def scene_spec(name: str, out: Path, source: str = "auto") -> tuple[str, str] | 
     from sonarsim import data
     mesh = data.root() / "meshes" / f"{name}.obj"
     if source in ("auto", "shared") and mesh.is_file():
-        toml = out / "data" / f"{name}.toml"
+        # absolute: the manifest that names it lives in out/batch and resolves relative
+        # paths against its own folder, not against the working directory of --out
+        toml = (out / "data" / f"{name}.toml").resolve()
         toml.parent.mkdir(parents=True, exist_ok=True)
         text = f'name = "{name}"\nground = true\n\n[[object]]\nmesh = "{mesh}"\nfit = false\n'
         if not toml.is_file() or toml.read_text() != text:
@@ -355,6 +357,9 @@ def manifest(cells: list[Cell], settings: Settings, out: Path, source: str = "au
     of that dataset, on the whole grid over the scene box, pulse-deconvolved first where the
     method asks (one deconvolved file per job, shared), evaluated with both protocols."""
     from sonarsim.scene import load_scene
+    # absolute paths: the manifest lives in out/batch and resolves relative paths against its
+    # own folder, not against the working directory a relative --out was given in
+    out = Path(out).resolve()
     jobs: dict[str, dict] = {}
     where: dict[str, tuple[str, str]] = {}
     bounds = [v for pair in GRID_BOUNDS for v in pair]

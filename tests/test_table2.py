@@ -251,6 +251,23 @@ def test_manifest_jobs_are_datasets_and_steps_are_cells(table2, tmp_path):
         assert table2.job_name(cells[0], other) != table2.job_name(cells[0], base)
 
 
+def test_a_relative_out_plans_from_any_working_directory(table2, tmp_path, monkeypatch):
+    """`--out red` once wrote the scene and pose files' paths relative to the working directory
+    into a manifest that resolves paths against its own folder (red/batch/red/data/bunny.toml:
+    scene file not found); every path in it is now absolute."""
+    from sonarsim.batch import plan_batch
+    monkeypatch.chdir(tmp_path)
+    out = Path("red")
+    base = table2.replace(table2.SIZES["quick"], angle_step=90, height_step=75)
+    cells = table2.cells_of(["bp"], ["bunny"], base)
+    doc, _ = table2.manifest(cells, base, out)
+    path = out / "batch" / "table2.toml"
+    table2.write_manifest(doc, path)
+    plan = plan_batch(path, out / "batch", log=lambda m: None)
+    scene = Path(plan.jobs[0].params["scene"])
+    assert scene.is_absolute() and scene.is_file()
+
+
 def test_subsample_is_refused_in_one_line():
     proc = subprocess.run([sys.executable, str(SCRIPT), "--subsample", "5", "5", "--out",
                            "/nonexistent/t2"], capture_output=True, text=True, timeout=120,
