@@ -18,10 +18,14 @@ bistatic geometry:
    k = (2πf/c_i)·(û_TX + û_RX), û the unit vectors from x0 towards TX and RX. This is the
    plane-wave (far-field) approximation about x0: L(x) − L0 ≈ −(û_TX + û_RX)·(x − x0), so the
    phase-referenced spectrum of a scatterer at x is ≈ exp(+j k·(x − x0)).
-4. **Density compensation and window.** Each sample is weighted by |k|^D·ΔΩ_i (the
-   Jacobian of the polar raster: D = 2 for a 3-D aperture such as the cylindrical scan,
-   D = 1 for one circle; ΔΩ_i the aperture area per ping, estimated from nearest
-   neighbours of the look directions) and by a Tukey window over the band (``taper``).
+4. **Density compensation and window.** With ``weights='density'`` each sample is weighted
+   by |k|^D·ΔΩ_i (the Jacobian of the polar raster: D = 2 for a 3-D aperture such as the
+   cylindrical scan, D = 1 for one circle; ΔΩ_i the aperture area per ping, estimated from
+   nearest neighbours of the look directions): the classical inverse of the polar raster,
+   which sharpens the image along the range direction. ``weights='uniform'`` weights every
+   sample alike, the matched-filter sum: with no taper, a wide band and the reference
+   point at the voxel it is then the same sum as backprojection (:mod:`recon.backprojection`),
+   evaluated in the Fourier domain. Either way a Tukey window over the band (``taper``).
 5. **Cartesian grid and inverse FFT.** image(x_l) = Σ_j w_j S_j exp(−j k_j·(x_l − x0)) on the
    voxel centres x_l of a :class:`~recon.grid.Grid`, computed as one type-1 non-uniform FFT
    (``finufft``): finufft spreads the polar samples onto an oversampled Cartesian k-grid
@@ -50,9 +54,12 @@ MAX_POINTS_PER_NUFFT = 4_000_000   # polar samples per finufft call (bounds memo
 # result and our accumulator (2 x 16), the complex64 volume (8).
 BYTES_PER_VOXEL = 8 * 16 + 2 * 16 + 8
 _NEIGHBOURS = (12, 200)            # nearest look directions for the aperture-area estimate
+WEIGHTS = ("density", "uniform")   # polar-sample weighting (module docstring, step 4)
 
 
-def _validate(grid, band_db, taper, eps, reference_point):
+def _validate(grid, band_db, taper, eps, reference_point, weights="density"):
+    if weights not in WEIGHTS:
+        raise InputError(f"weights: expected one of {', '.join(WEIGHTS)}, got {weights!r}")
     if not isinstance(grid, Grid):
         raise InputError(f"grid: expected recon.grid.Grid, got {type(grid).__name__}")
     if not (np.isfinite(band_db) and band_db < 0):
@@ -68,11 +75,12 @@ def _validate(grid, band_db, taper, eps, reference_point):
 
 
 def check_options(grid: Grid, dataset=None, *, reference_point=None, band_db: float = -20.0,
-                  taper: float = 0.25, eps: float = 1e-6, patches=1, **_ignored) -> None:
+                  taper: float = 0.25, eps: float = 1e-6, patches=1, weights: str = "density",
+                  **_ignored) -> None:
     """The checks the command line, ``sonarsim batch`` and :func:`solve` make before any work
     (InputError, one line): the option ranges and the grid's memory."""
     from .checks import check_grid_memory
-    _validate(grid, band_db, taper, eps, reference_point)
+    _validate(grid, band_db, taper, eps, reference_point, weights)
     _patch_counts(patches, reference_point)
     check_grid_memory(grid, BYTES_PER_VOXEL, what="polar formatting")
 
@@ -161,12 +169,14 @@ def tukey(u: np.ndarray, ratio: float) -> np.ndarray:
 
 
 def polar_samples(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
-                  taper: float = 0.25, per_ping_sound_speed: bool = True) -> dict:
+                  taper: float = 0.25, per_ping_sound_speed: bool = True,
+                  weights: str = "density") -> dict:
     """The polar raster without the measurements: everything :func:`pfa` needs per ping.
 
     Returns a dict: ``x0`` [3], ``n_fft``, ``bins`` [F], ``freqs`` [F] (Hz), ``c`` [N],
     ``path0`` [N] (m), ``look_sum`` [N, 3] (û_TX + û_RX), ``weights`` [N, F] (density ×
-    window), ``response`` [F] (spectrum of a unit echo's measurement), ``dim``.
+    window, or the window alone for ``weights='uniform'``), ``response`` [F] (spectrum of a
+    unit echo's measurement), ``dim``.
     """
     measurements.check_dataset(dataset)
     x0 = (grid.bounds.mean(axis=1) if reference_point is None
@@ -189,12 +199,15 @@ def polar_samples(dataset, grid: Grid, *, reference_point=None, band_db: float =
     area, dim = aperture_weights(look_sum / norm[:, None])
     kmag = 2 * np.pi * freqs[None, :] / c[:, None] * norm[:, None]      # [N, F]
     window = tukey((freqs - freqs[0]) / max(freqs[-1] - freqs[0], 1e-300), float(taper))
-    weights = kmag ** dim * area[:, None] * window[None, :]
+    if weights == "uniform":
+        sample_weights = np.broadcast_to(window[None, :], kmag.shape).copy()
+    else:
+        sample_weights = kmag ** dim * area[:, None] * window[None, :]
     # Spectrum of the measurement of a unit echo: the matched filter of two analytic signals
     # carries 4|P|² at positive frequencies; a deconvolved analytic impulse carries 2.
     response = np.full(len(bins), 2.0) if is_deconvolved(dataset) else 4.0 * power
     return {"x0": x0, "n_fft": n_fft, "bins": bins, "freqs": freqs, "c": c,
-            "path0": r_tx + r_rx, "look_sum": look_sum, "weights": weights,
+            "path0": r_tx + r_rx, "look_sum": look_sum, "weights": sample_weights,
             "response": response, "dim": dim}
 
 
@@ -218,12 +231,13 @@ def wavenumbers(raster: dict, pings: np.ndarray) -> np.ndarray:
 
 def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
         taper: float = 0.25, eps: float = 1e-6, per_ping_sound_speed: bool = True,
-        progress: bool = True) -> tuple[np.ndarray, dict]:
+        progress: bool = True, weights: str = "density") -> tuple[np.ndarray, dict]:
     """Polar-format image (complex64 [nx, ny, nz]) and the raster's summary (see :func:`solve`)."""
     import finufft
-    _validate(grid, band_db, taper, eps, reference_point)
+    _validate(grid, band_db, taper, eps, reference_point, weights)
     raster = polar_samples(dataset, grid, reference_point=reference_point, band_db=band_db,
-                           taper=taper, per_ping_sound_speed=per_ping_sound_speed)
+                           taper=taper, per_ping_sound_speed=per_ping_sound_speed,
+                           weights=weights)
     n_pings, n_f = raster["weights"].shape
     spacing = grid.spacing
     # Mode m' of finufft (index i = m' + floor(n/2)) is the voxel at centre + m'·Δ.
@@ -248,7 +262,7 @@ def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     image /= float(np.sum(raster["weights"] * raster["response"][None, :]))
     info = {"reference_point": raster["x0"].tolist(), "n_fft": int(raster["n_fft"]),
             "band_hz": [float(raster["freqs"][0]), float(raster["freqs"][-1])],
-            "n_frequencies": int(n_f), "aperture_dim": int(raster["dim"]),
+            "n_frequencies": int(n_f), "aperture_dim": int(raster["dim"]), "weights": weights,
             "n_polar_samples": int(n_pings * n_f)}
     return image.astype(np.complex64), info
 
@@ -287,7 +301,7 @@ def patch_grids(grid: Grid, patches) -> list[tuple[tuple[slice, slice, slice], G
 
 def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
           taper: float = 0.25, eps: float = 1e-6, per_ping_sound_speed: bool = True,
-          progress: bool = True, patches: int = 1):
+          progress: bool = True, patches: int = 1, weights: str = "density"):
     """Polar-format reconstruction of ``dataset`` on ``grid``.
 
     reference_point: [3] metres, the phase (motion-compensation) centre; default the grid
@@ -300,6 +314,8 @@ def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
         block imaged with its own reference point (its centre), so the far-field error grows
         with the distance from the nearest block centre rather than from the grid's centre
         (cost: one non-uniform FFT of all samples per block). Excludes ``reference_point``.
+    weights: 'density' (|k|^D·ΔΩ, the polar raster's Jacobian) or 'uniform' (every polar
+        sample alike: backprojection's sum); module docstring, step 4.
     Returns a :class:`~sonarsim.dataset.Volume` (complex64 [nx, ny, nz], method 'pfa').
     """
     from sonarsim.dataset import Volume
@@ -307,15 +323,15 @@ def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
     if max(counts) == 1:
         image, info = pfa(dataset, grid, reference_point=reference_point, band_db=band_db,
                           taper=taper, eps=eps, per_ping_sound_speed=per_ping_sound_speed,
-                          progress=progress)
+                          progress=progress, weights=weights)
     else:
-        _validate(grid, band_db, taper, eps, None)
+        _validate(grid, band_db, taper, eps, None, weights)
         image = np.zeros(grid.shape, dtype=np.complex64)
         blocks = patch_grids(grid, patches)
         for index, block in blocks:
             image[index], info = pfa(dataset, block, band_db=band_db, taper=taper, eps=eps,
                                      per_ping_sound_speed=per_ping_sound_speed,
-                                     progress=progress)
+                                     progress=progress, weights=weights)
         info = {**info, "reference_point": None, "patches": list(counts),
                 "n_blocks": len(blocks)}
     params = {"band_db": float(band_db), "taper": float(taper), "eps": float(eps),

@@ -17,6 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sub-patch processing: N blocks per axis, each imaged about its "
                              "own centre (removes the far-field defocus away from the grid "
                              "centre; N³ non-uniform FFTs of all samples; default 1)")
+    parser.add_argument("--weights", choices=("density", "uniform"), default="density",
+                        help="polar-sample weighting: density = |k|^D times the aperture area "
+                             "per ping (the polar raster's Jacobian, sharper in range); uniform "
+                             "= every sample alike (backprojection's sum; default density)")
     parser.add_argument("--band-db", type=float, default=-20.0,
                         help="keep frequencies whose pulse power is within this many dB of "
                              "the peak (default -20)")
@@ -32,9 +36,9 @@ def run(args: argparse.Namespace) -> int:
     ds = _common.load_dataset(args)
     grid = _common.grid_from_args(args, ds, bytes_per_voxel=pfa.BYTES_PER_VOXEL)
     pfa.check_options(grid, ds, reference_point=args.reference_point, band_db=args.band_db,
-                      taper=args.taper, eps=args.eps, patches=args.patches)
+                      taper=args.taper, eps=args.eps, patches=args.patches, weights=args.weights)
     vol = pfa.solve(ds, grid, reference_point=args.reference_point, band_db=args.band_db,
-                    taper=args.taper, eps=args.eps, patches=args.patches,
+                    taper=args.taper, eps=args.eps, patches=args.patches, weights=args.weights,
                     per_ping_sound_speed=not args.mean_sound_speed,
                     progress=not args.no_progress)
     return _common.write_volume(vol, args, f"polar formatting of {ds.n_pings} pings on "
