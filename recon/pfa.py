@@ -55,9 +55,15 @@ MAX_POINTS_PER_NUFFT = 4_000_000   # polar samples per finufft call (bounds memo
 BYTES_PER_VOXEL = 8 * 16 + 2 * 16 + 8
 _NEIGHBOURS = (12, 200)            # nearest look directions for the aperture-area estimate
 WEIGHTS = ("density", "uniform")   # polar-sample weighting (module docstring, step 4)
+# Defaults (chosen on full-size scans of the bunny, cube, cylinder, sphere and tabletop scenes;
+# docs/reconstruction.md "Polar formatting", "Defaults"): every polar sample alike, the
+# pulse's band to -40 dB and no extra window, i.e. backprojection's sum of the same data.
+DEFAULT_WEIGHTS = "uniform"
+DEFAULT_BAND_DB = -40.0
+DEFAULT_TAPER = 0.0
 
 
-def _validate(grid, band_db, taper, eps, reference_point, weights="density"):
+def _validate(grid, band_db, taper, eps, reference_point, weights=DEFAULT_WEIGHTS):
     if weights not in WEIGHTS:
         raise InputError(f"weights: expected one of {', '.join(WEIGHTS)}, got {weights!r}")
     if not isinstance(grid, Grid):
@@ -74,8 +80,9 @@ def _validate(grid, band_db, taper, eps, reference_point, weights="density"):
             raise InputError(f"reference_point: expected three finite numbers, got {reference_point!r}")
 
 
-def check_options(grid: Grid, dataset=None, *, reference_point=None, band_db: float = -20.0,
-                  taper: float = 0.25, eps: float = 1e-6, patches=1, weights: str = "density",
+def check_options(grid: Grid, dataset=None, *, reference_point=None,
+                  band_db: float = DEFAULT_BAND_DB, taper: float = DEFAULT_TAPER,
+                  eps: float = 1e-6, patches=1, weights: str = DEFAULT_WEIGHTS,
                   **_ignored) -> None:
     """The checks the command line, ``sonarsim batch`` and :func:`solve` make before any work
     (InputError, one line): the option ranges and the grid's memory."""
@@ -168,9 +175,10 @@ def tukey(u: np.ndarray, ratio: float) -> np.ndarray:
     return w
 
 
-def polar_samples(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
-                  taper: float = 0.25, per_ping_sound_speed: bool = True,
-                  weights: str = "density") -> dict:
+def polar_samples(dataset, grid: Grid, *, reference_point=None,
+                  band_db: float = DEFAULT_BAND_DB, taper: float = DEFAULT_TAPER,
+                  per_ping_sound_speed: bool = True,
+                  weights: str = DEFAULT_WEIGHTS) -> dict:
     """The polar raster without the measurements: everything :func:`pfa` needs per ping.
 
     Returns a dict: ``x0`` [3], ``n_fft``, ``bins`` [F], ``freqs`` [F] (Hz), ``c`` [N],
@@ -229,9 +237,9 @@ def wavenumbers(raster: dict, pings: np.ndarray) -> np.ndarray:
     return scale[:, :, None] * raster["look_sum"][pings, None, :]
 
 
-def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
-        taper: float = 0.25, eps: float = 1e-6, per_ping_sound_speed: bool = True,
-        progress: bool = True, weights: str = "density") -> tuple[np.ndarray, dict]:
+def pfa(dataset, grid: Grid, *, reference_point=None, band_db: float = DEFAULT_BAND_DB,
+        taper: float = DEFAULT_TAPER, eps: float = 1e-6, per_ping_sound_speed: bool = True,
+        progress: bool = True, weights: str = DEFAULT_WEIGHTS) -> tuple[np.ndarray, dict]:
     """Polar-format image (complex64 [nx, ny, nz]) and the raster's summary (see :func:`solve`)."""
     import finufft
     _validate(grid, band_db, taper, eps, reference_point, weights)
@@ -299,9 +307,9 @@ def patch_grids(grid: Grid, patches) -> list[tuple[tuple[slice, slice, slice], G
     return out
 
 
-def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = -20.0,
-          taper: float = 0.25, eps: float = 1e-6, per_ping_sound_speed: bool = True,
-          progress: bool = True, patches: int = 1, weights: str = "density"):
+def solve(dataset, grid: Grid, *, reference_point=None, band_db: float = DEFAULT_BAND_DB,
+          taper: float = DEFAULT_TAPER, eps: float = 1e-6, per_ping_sound_speed: bool = True,
+          progress: bool = True, patches: int = 1, weights: str = DEFAULT_WEIGHTS):
     """Polar-format reconstruction of ``dataset`` on ``grid``.
 
     reference_point: [3] metres, the phase (motion-compensation) centre; default the grid

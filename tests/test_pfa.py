@@ -107,8 +107,9 @@ def test_density_compensation_gives_the_annulus_psf():
     p = np.array([0.0, 0.0, 0.1])
     ds = synthetic.point_dataset([p], n_pings=360, heights=(0.1,), sound_speed=C)
     g = Grid([[0.0, 0.04], [0.0, 0.0], [0.1, 0.1]], (81, 1, 1))
-    image = pfa.solve(ds, g, progress=False, reference_point=p, taper=0.25).volume.ravel()
-    raster = pfa.polar_samples(ds, g, reference_point=p, taper=0.25)
+    kw = dict(reference_point=p, taper=0.25, band_db=-20.0, weights="density")
+    image = pfa.solve(ds, g, progress=False, **kw).volume.ravel()
+    raster = pfa.polar_samples(ds, g, **kw)
     f = raster["freqs"]
     k = 2 * np.pi * f / C * np.linalg.norm(raster["look_sum"], axis=1).mean()
     u = (f - f[0]) / (f[-1] - f[0])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..pfa import DEFAULT_BAND_DB, DEFAULT_TAPER, DEFAULT_WEIGHTS, WEIGHTS
 from . import _common
 
 HELP = ("Polar formatting: place each ping's spectrum at k = 2πf/c·(û_TX + û_RX) about a "
@@ -17,15 +18,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sub-patch processing: N blocks per axis, each imaged about its "
                              "own centre (removes the far-field defocus away from the grid "
                              "centre; N³ non-uniform FFTs of all samples; default 1)")
-    parser.add_argument("--weights", choices=("density", "uniform"), default="density",
-                        help="polar-sample weighting: density = |k|^D times the aperture area "
-                             "per ping (the polar raster's Jacobian, sharper in range); uniform "
-                             "= every sample alike (backprojection's sum; default density)")
-    parser.add_argument("--band-db", type=float, default=-20.0,
+    parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
+                        help="polar-sample weighting: uniform = every sample alike "
+                             "(backprojection's sum of the same data); density = |k|^D times "
+                             "the aperture area per ping (the polar raster's Jacobian: sharper "
+                             f"in range, without the object's low-frequency body; default "
+                             f"{DEFAULT_WEIGHTS})")
+    parser.add_argument("--band-db", type=float, default=DEFAULT_BAND_DB,
                         help="keep frequencies whose pulse power is within this many dB of "
-                             "the peak (default -20)")
-    parser.add_argument("--taper", type=float, default=0.25,
-                        help="Tukey window ratio over the band, 0 = none, 1 = Hann (default 0.25)")
+                             f"the peak (default {DEFAULT_BAND_DB:g})")
+    parser.add_argument("--taper", type=float, default=DEFAULT_TAPER,
+                        help="Tukey window ratio over the band, 0 = none, 1 = Hann "
+                             f"(default {DEFAULT_TAPER:g})")
     parser.add_argument("--eps", type=float, default=1e-6, help="finufft tolerance (default 1e-6)")
     parser.add_argument("--mean-sound-speed", action="store_true",
                         help="ignore per-ping temperatures; use the dataset's sound speed for every ping")
