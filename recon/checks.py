@@ -46,15 +46,19 @@ def check_grid_memory(grid: Grid, bytes_per_voxel: float = BYTES_PER_VOXEL, extr
                                               f"{bytes_per_voxel:g} bytes", hint)
 
 
-def check_signal(ds, label, warn: Callable[[str], None] | None = None) -> None:
+def check_signal(ds, label, warn: Callable[[str], None] | None = None,
+                 refuse_silence: str | None = None) -> None:
     """Refuse an all-zero pulse (InputError); warn (``warn``, default stderr) about all-zero
-    waveforms."""
+    waveforms, or refuse them with ``refuse_silence`` as the reason (commands that fit the
+    waveforms, for which silence leaves nothing to do)."""
     from . import measurements
     deconvolved = getattr(measurements, "is_deconvolved", lambda d: False)(ds)
     if not deconvolved and not np.any(np.asarray(ds.pulse)):
         raise InputError(f"{label}: the dataset's pulse is all zero; matched filtering would "
                          "turn every echo into zeros (fix the pulse of the dataset)")
     if not np.any(np.asarray(ds.waveforms)):
+        if refuse_silence:
+            raise InputError(f"{label}: every waveform sample is zero; {refuse_silence}")
         message = f"warning: {label}: every waveform sample is zero; the volume will be all zero"
         (warn or (lambda m: print(m, file=sys.stderr)))(message)
 

@@ -82,6 +82,9 @@ def evaluate_file(path: Path, gt, *, threshold: float = export.DEFAULT_THRESHOLD
             raise InputError(f"{name}: must be >= 1, got {n}")
     gt = _as_ground_truth(gt)
     box = None if crop is None else np.asarray(crop, dtype=np.float64).reshape(3, 2)
+    if box is not None and not (np.all(np.isfinite(box)) and np.all(box[:, 1] >= box[:, 0])):
+        raise InputError(f"--crop: expected x0 x1 y0 y1 z0 z1 (m, finite, each low <= high), "
+                         f"got {box.ravel().tolist()}")
     if protocol == "reference":
         cams, reference = views.reference_views(gt_shape_name(gt), reference_views), True
         if normalize != "minmax":

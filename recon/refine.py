@@ -47,6 +47,7 @@ import typing
 import numpy as np
 
 from sonarsim.errors import InputError
+from sonarsim.limits import MAX_BOUNCES
 
 from .pulse_chain import Envelope, PulseChain, envelope_misfit, scaled_misfit
 
@@ -114,6 +115,11 @@ class RefineSettings:
         for name in ("pings_per_batch", "bounces", "path_samples"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer, got {getattr(self, name)}")
+        if self.bounces > MAX_BOUNCES:
+            raise InputError(f"bounces must be at most {MAX_BOUNCES}, got {self.bounces}")
+        if self.oversample is not None and (int(self.oversample) != self.oversample
+                                            or self.oversample < 1):
+            raise InputError(f"oversample must be a positive integer, got {self.oversample}")
         for name in ("lr", "large_steps_lambda", "edge_length", "surface_spacing", "patch_size",
                      "support_lr"):
             v = getattr(self, name)
@@ -589,7 +595,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     if len(index) == 0:
         raise InputError("no pings to fit")
     ground = dataset_ground(dataset) if ground == "dataset" else ground
-    k = int(settings.oversample or dataset.meta.get("oversample", 20))
+    k = int(dataset.meta.get("oversample", 20) if settings.oversample is None
+            else settings.oversample)
     window = dataset_window(dataset, k)
     objective = _Objective(dataset, PulseChain(dataset.pulse, k, dataset.n_samples, window[2]))
     vertices, faces = remesh(init.vertices, init.faces, settings.edge_length)

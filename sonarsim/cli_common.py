@@ -38,6 +38,7 @@ import pkgutil
 import resource
 import sys
 import time
+from pathlib import Path
 
 from . import limits, outputs, progress, runtime
 from .threads import check_threads, dr_threads
@@ -139,15 +140,21 @@ def _add_common_options(p: argparse.ArgumentParser, module, threads: bool) -> No
 
 
 def _output_paths(args: argparse.Namespace) -> list:
-    """Check the output files before any work; return them (to be locked)."""
-    paths = []
+    """Check the output files before any work; return them (to be locked). Two output options
+    that name the same file are refused: the second write would replace the first's result."""
+    paths, seen = [], {}
     for dest in getattr(args, "_outputs", ()):
         value = getattr(args, dest, None)
         if value is None:
             continue
-        outputs.check_output(value, force=bool(getattr(args, "force", False)),
-                             option="--" + dest.replace("_", "-"),
+        option = "--" + dest.replace("_", "-")
+        outputs.check_output(value, force=bool(getattr(args, "force", False)), option=option,
                              exists_ok=args._outputs_exist_ok)
+        key = Path(value).resolve()
+        if key in seen:
+            raise InputError(f"{seen[key]} and {option} both name {value}; give each output "
+                             "its own file")
+        seen[key] = option
         paths.append(value)
     return paths
 

@@ -23,6 +23,7 @@ from .errors import InputError
 MAX_FS = 100e6                 # Hz; AirSAS samples at 100 kHz, imaging sonars at a few MHz
 MAX_PULSE_SECONDS = 1.0        # s; sonar pulses last micro- to milliseconds
 MAX_UPSAMPLE = 1024            # FFT upsampling factor of the reconstructors (reference: 5)
+MAX_BOUNCES = 64               # the integrator's limit (plugins/sonar_transient.py MAX_BOUNCES_LIMIT)
 MACHINE_FRACTION = 0.8         # share of the machine's memory a run may plan to use
 ENV_MAX_MEMORY = "SONARSIM_MAX_MEMORY"
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from .dataset import Transients, TransientsStreamWriter
 from .errors import InputError
+from .limits import MAX_BOUNCES
 from .geometry import CropWindow, Poses, SceneBox, crop_window
 from .progress import progress_bar
 from .signals import AIRSAS_FS
@@ -206,7 +207,7 @@ class RenderSettings:
 
     def validate(self) -> "RenderSettings":
         """Check every setting; returns the settings with integers as ints, beams complete."""
-        for name, lo, hi in (("paths_per_pose", 1, _LANE_LIMIT), ("bounces", 1, 64),
+        for name, lo, hi in (("paths_per_pose", 1, _LANE_LIMIT), ("bounces", 1, MAX_BOUNCES),
                              ("seed", 0, _LANE_LIMIT), ("oversample", 1, 10_000),
                              ("speckle_seed", 0, _LANE_LIMIT)):
             _check_int(name, getattr(self, name), lo, hi)

@@ -68,9 +68,10 @@ def parse_slice(text: str | None, n: int) -> np.ndarray | None:
     return idx
 
 
-def load_dataset(args):
+def load_dataset(args, refuse_silence: str | None = None):
     """The dataset of ``args.dataset`` with the ``--pings`` selection, after checking that its
-    waveforms fit in memory and that its pulse is not all zero."""
+    waveforms fit in memory and that its pulse is not all zero (all-zero waveforms: a warning,
+    or an InputError with ``refuse_silence`` as the reason)."""
     from sonarsim import limits
     from sonarsim.dataset import KIND_DATASET, SonarDataset, inspect
     with inspect(args.dataset, expected=KIND_DATASET) as (_, fields):
@@ -82,7 +83,7 @@ def load_dataset(args):
                         f"reading {args.dataset}", f"{n} pings x {t} samples",
                         "select fewer pings with --pings")
     ds = SonarDataset.read(args.dataset)
-    check_signal(ds, args.dataset)
+    check_signal(ds, args.dataset, refuse_silence=refuse_silence)
     idx = parse_slice(args.pings, ds.n_pings)
     return ds if idx is None else ds.select(idx)
 

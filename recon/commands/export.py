@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from sonarsim import outputs
 from sonarsim.dataset import Volume
 from sonarsim.errors import InputError
@@ -59,20 +61,23 @@ def _export(args: argparse.Namespace) -> int:
     if args.slices is not None and args.slices.exists() and not args.slices.is_dir():
         raise InputError(f"--slices {args.slices}: exists and is not a directory")
     vol = Volume.read(args.volume)
+    mag = export.normalized_magnitude(vol.volume, args.normalize)
+    mesh = None
+    if args.mesh:               # before any file is written: a volume without a surface
+        mesh = export.extract_surface(mag, vol.bounds, threshold)   # writes nothing at all
+        if len(mesh.faces) == 0:
+            hint = ("the volume is all zero" if not np.any(vol.volume)
+                    else "try a lower --threshold")
+            raise InputError(f"{args.volume}: no voxel above threshold {threshold:g} "
+                             "(normalised magnitude); no surface to write to "
+                             f"{args.mesh}; {hint}")
     if args.vti:
         export.write_vti(args.vti, vol.volume, vol.bounds)
         print(f"vti: {args.vti} (magnitude, phase; {_grid_text(vol)})")
     if args.tiff:
         export.write_ome_tiff(args.tiff, vol.volume, vol.bounds)
         print(f"tiff: {args.tiff} (channels magnitude, phase; {_grid_text(vol)})")
-    mag = export.normalized_magnitude(vol.volume, args.normalize)
-    mesh = None
-    if args.mesh:
-        mesh = export.extract_surface(mag, vol.bounds, threshold)
-        if len(mesh.faces) == 0:
-            raise InputError(f"{args.volume}: no voxel above threshold {threshold:g} "
-                             "(normalised magnitude); no surface to write to "
-                             f"{args.mesh}; try a lower --threshold")
+    if mesh is not None:
         export.write_mesh(args.mesh, mesh)
         print(f"mesh: {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.faces)} faces, "
               f"threshold {threshold:g})")

@@ -121,6 +121,9 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
     ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file."""
     from ..refine import range_resolution, start_mesh
     path = args.init
+    import math
+    if not math.isfinite(args.z_min):
+        raise InputError(f"--z-min: must be a finite height in metres, got {args.z_min}")
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
     import numpy as np
@@ -182,23 +185,34 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if args.out.suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
         raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
-    ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None))
+    ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None),
+                              refuse_silence="there is nothing to fit")
     starts = initial_meshes(args, ds)
+    if args.keep_candidates:
+        from sonarsim.outputs import check_output
+        named = {Path(args.out).resolve()} | ({Path(args.history).resolve()}
+                                              if args.history is not None else set())
+        for k, _ in starts:
+            for path in candidate_paths(args.out, k):
+                if path.resolve() in named:
+                    raise InputError(f"--keep-candidates: {path} is also another output")
+                check_output(path, force=bool(getattr(args, "force", False)),
+                             option="--keep-candidates")
     index = _common.parse_slice(args.pings, ds.n_pings)
     candidates, results = [], []
     for k, init in starts:
         if len(starts) > 1:
             print(f"start --wrap {k:g}: {len(init.faces)} faces")
-        if args.keep_candidates:
-            write_mesh(candidate_paths(args.out, k)[0], init)
         res = solve(ds, init, settings, ping_index=index,
                     ground=None if args.no_ground else "dataset",
                     progress=not args.no_progress, log=print)
         candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
                            "albedo": res.albedo})
-        if args.keep_candidates:
-            write_mesh(candidate_paths(args.out, k)[1], res.mesh)
+        if args.keep_candidates:           # after the fit: a failed one leaves no files
+            start_path, refined_path = candidate_paths(args.out, k)
+            write_mesh(start_path, init)
+            write_mesh(refined_path, res.mesh)
         results.append(res)
         if len(starts) > 1:
             env = candidates[-1]["envelope_misfit"]
