@@ -141,8 +141,17 @@ def _add_common_options(p: argparse.ArgumentParser, module, threads: bool) -> No
 
 def _output_paths(args: argparse.Namespace) -> list:
     """Check the output files before any work; return them (to be locked). Two output options
-    that name the same file are refused: the second write would replace the first's result."""
+    that name the same file are refused: the second write would replace the first's result;
+    so is an output that is one of the command's input files, even with --force."""
     paths, seen = [], {}
+    outputs_ = set(getattr(args, "_outputs", ()))
+    inputs = {}
+    for dest, value in vars(args).items():
+        if dest.startswith("_") or dest in outputs_:
+            continue
+        for v in (value if isinstance(value, (list, tuple)) else [value]):
+            if isinstance(v, (str, os.PathLike)) and v and Path(v).is_file():
+                inputs.setdefault(Path(v).resolve(), dest)
     for dest in getattr(args, "_outputs", ()):
         value = getattr(args, dest, None)
         if value is None:
@@ -151,6 +160,9 @@ def _output_paths(args: argparse.Namespace) -> list:
         outputs.check_output(value, force=bool(getattr(args, "force", False)), option=option,
                              exists_ok=args._outputs_exist_ok)
         key = Path(value).resolve()
+        if key in inputs:
+            raise InputError(f"{option} {value}: is also the input {inputs[key]!r}; write the "
+                             "result to another file")
         if key in seen:
             raise InputError(f"{seen[key]} and {option} both name {value}; give each output "
                              "its own file")

@@ -113,3 +113,27 @@ def test_evaluate_of_a_mesh_checks_the_crop(files, capsys, crop):
     s = str(files / "s.ply")
     assert recon_main(["evaluate", s, "--gt", s, "--crop", *crop, "--no-images"]) == 2
     assert "--crop" in one_line_error(capsys)
+
+
+def test_compare_shows_the_ground_truth_warnings_once(files, tmp_path, capsys):
+    """Once: compare dropped the warnings evaluate prints (here: a GT mesh outside the
+    evaluated box, i.e. in another frame), and scored as if nothing were wrong."""
+    far = trimesh.load(files / "s.ply")
+    far.apply_translation([1.0, 1.0, 1.0])
+    gt = tmp_path / "far.ply"
+    far.export(gt)
+    vol = str(files / "ds_vol.h5")
+    assert recon_main(["compare", vol, vol, "--gt", str(gt), "--out", str(tmp_path / "c.png")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("of the ground-truth mesh's bounding box lies inside") == 1, err
+
+
+def test_an_output_that_is_the_input_is_refused_even_with_force(files, tmp_path, capsys):
+    """Once: deconvolve ds.h5 --out ds.h5 --force replaced the raw data by its deconvolution."""
+    import shutil
+    ds = tmp_path / "ds.h5"
+    shutil.copy(files / "ds.h5", ds)
+    before = ds.read_bytes()
+    assert recon_main(["deconvolve", str(ds), "--method", "wiener", "--out", str(ds),
+                       "--force"]) == 2
+    assert "is also the input" in one_line_error(capsys) and ds.read_bytes() == before

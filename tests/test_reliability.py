@@ -973,7 +973,8 @@ def test_existing_checkpoint_replaced_only_with_force_or_resumed(ds_file, tmp_pa
     assert recon_main([*args, "--out", str(tmp_path / "b.h5")]) == 2
     assert "exists" in one_line_error(capsys) and ck.read_bytes() == stamp
     assert recon_main([*args, "--out", str(tmp_path / "c.h5"), "--resume"]) == 0
-    assert recon_main([*args, "--out", str(tmp_path / "d.h5"), "--force"]) == 0
+    # (e.h5: d.h5 is the dataset, which this line once overwrote with --force)
+    assert recon_main([*args, "--out", str(tmp_path / "e.h5"), "--force"]) == 0
 
 
 def test_checkpoint_with_a_negative_iteration_is_refused(ds_file, tmp_path, capsys):

@@ -41,6 +41,13 @@ def run(args: argparse.Namespace) -> int:
     results = [evaluate_file(path, gt, threshold=threshold, normalize=args.normalize,
                              sweep=False, images=False, crop=args.crop)
                for path in args.volumes]
+    import logging
+    shown = set()
+    for path, res in zip(args.volumes, results):   # the ground truth's warnings once
+        for line in res.get("warnings", ()):
+            if line not in shown:
+                shown.add(line)
+                logging.getLogger(__name__).warning(line)
     fig = figures.comparison(args.volumes, gt, labels=[p.stem for p in args.volumes],
                              crop=args.crop, threshold=threshold, view=args.view,
                              normalize=args.normalize, results=results)
