@@ -136,7 +136,8 @@ def _add_common_options(p: argparse.ArgumentParser, module, threads: bool) -> No
                        help="replace existing output files (otherwise an existing output is "
                             "refused)")
     p.set_defaults(_outputs=dests, _outputs_exist_ok=bool(getattr(module, "OUTPUT_EXISTS_OK",
-                                                                   False)))
+                                                                   False)),
+                   _output_suffixes=dict(getattr(module, "OUTPUT_SUFFIXES", {})))
 
 
 def _output_paths(args: argparse.Namespace) -> list:
@@ -157,6 +158,10 @@ def _output_paths(args: argparse.Namespace) -> list:
         if value is None:
             continue
         option = "--" + dest.replace("_", "-")
+        suffixes = getattr(args, "_output_suffixes", {}).get(dest)
+        if suffixes and not str(value).lower().endswith(tuple(suffixes)):
+            raise InputError(f"{option} {value}: the file is written as {' or '.join(suffixes)}; "
+                             "name it so")
         outputs.check_output(value, force=bool(getattr(args, "force", False)), option=option,
                              exists_ok=args._outputs_exist_ok)
         key = Path(value).resolve()

@@ -72,14 +72,12 @@ def test_refine_refuses_silent_waveforms_before_building_the_model(files, tmp_pa
 
 def test_two_outputs_naming_one_file_are_refused(files, tmp_path, capsys):
     """Once: refine --history r.ply --out r.ply left the JSON history under the mesh's name,
-    and export --vti x --tiff x only the TIFF, both with exit 0."""
-    out = tmp_path / "r.ply"
+    and export --vti x --tiff x only the TIFF, both with exit 0 (names with the wrong suffix
+    are refused since, test below; the check holds for any pair of outputs)."""
+    out = tmp_path / "r.json"
     assert recon_main(["refine", str(files / "ds.h5"), "--init", str(files / "s.ply"),
                        "--out", str(out), "--history", str(out), *REFINE_QUICK]) == 2
-    assert "both name" in one_line_error(capsys) and not out.exists()
-    x = tmp_path / "x.out"
-    assert recon_main(["export", str(files / "ds_vol.h5"), "--vti", str(x), "--tiff", str(x)]) == 2
-    assert "--vti and --tiff both name" in one_line_error(capsys) and not x.exists()
+    assert "--out and --history both name" in one_line_error(capsys) and not out.exists()
 
 
 def test_kept_candidates_are_not_overwritten_without_force(files, tmp_path, capsys):
@@ -137,3 +135,21 @@ def test_an_output_that_is_the_input_is_refused_even_with_force(files, tmp_path,
     assert recon_main(["deconvolve", str(ds), "--method", "wiener", "--out", str(ds),
                        "--force"]) == 2
     assert "is also the input" in one_line_error(capsys) and ds.read_bytes() == before
+
+
+@pytest.mark.parametrize("command, option, name", [
+    ("export", "--mip", "m.jpg"), ("export", "--vti", "v.txt"), ("export", "--tiff", "t.png"),
+    ("refine", "--history", "h.ply"), ("deconvolve", "--out", "d.ply"),
+])
+def test_an_output_named_for_another_format_is_refused(files, tmp_path, capsys, command, option,
+                                                       name):
+    """Once: export --mip m.jpg wrote a PNG, --vti v.txt VTK, refine --history h.ply JSON,
+    deconvolve --out d.ply HDF5, all with exit 0."""
+    out = tmp_path / name
+    args = {"export": ["export", str(files / "ds_vol.h5")],
+            "refine": ["refine", str(files / "ds.h5"), "--init", str(files / "s.ply"), "--out",
+                       str(tmp_path / "r.ply"), *REFINE_QUICK],
+            "deconvolve": ["deconvolve", str(files / "ds.h5"), "--method", "wiener"]}[command]
+    assert recon_main([*args, option, str(out)]) == 2
+    assert f"{option} {out}: the file is written as" in one_line_error(capsys)
+    assert not out.exists() and not (tmp_path / "r.ply").exists()

@@ -9,6 +9,7 @@ from pathlib import Path
 
 
 DEFAULT_MAX_HOURS = 1.0
+OUTPUT_SUFFIXES = {"out": (".h5",)}       # checked before any work (sonarsim.cli_common)
 
 HELP = ("Pulse-deconvolve a sonar dataset (Wiener by default, or the neural INR); writes a "
         "dataset of deconvolved analytic signals that every solver reads.")

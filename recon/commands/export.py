@@ -16,6 +16,8 @@ from .. import export
 HELP = ("Export a volume: .vti (ParaView) / OME-TIFF (napari, Fiji), maximum-intensity "
         "projections, slices, marching-cubes mesh.")
 OUTPUTS = ("mesh", "mip", "vti", "tiff")    # checked, locked and kept unless --force (cli_common)
+OUTPUT_SUFFIXES = {"mesh": (".ply", ".obj", ".stl", ".off", ".glb"), "mip": (".png",), "vti": (".vti",),
+                   "tiff": (".tif", ".tiff")}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ from . import _common
 HELP = ("Refine a surface mesh (from a volume's iso-surface or a mesh file) by fitting the "
         "rendered waveforms to the dataset's (docs/refine.md).")
 OUTPUTS = ("out", "history")
+OUTPUT_SUFFIXES = {"history": (".json",)}
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 
 OPTION_HELP = {
