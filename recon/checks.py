@@ -81,9 +81,17 @@ def check_grid_sees_data(ds, grid: Grid) -> None:
     c·(start_sample + k)/fs. If these intervals are disjoint for every ping, no voxel can
     receive anything and the result would be an all-zero volume.
     """
-    from . import measurements
     lo, hi = grid.bounds[:, 0], np.where(np.asarray(grid.shape) > 1, grid.bounds[:, 1],
                                          grid.bounds[:, 0])
+    check_box_sees_data(ds, lo, hi, "no voxel of the grid", "check --bounds and the dataset's "
+                        "start_sample (the volume would be all zero)")
+
+
+def check_box_sees_data(ds, lo, hi, what: str = "nothing in the box", hint: str = "") -> None:
+    """Refuse an axis-aligned box [lo, hi] (m) that lies outside every ping's recorded window
+    (InputError starting with ``what``, ending with ``hint``); see :func:`check_grid_sees_data`."""
+    from . import measurements
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     tx, rx = np.asarray(ds.tx, float), np.asarray(ds.rx, float)
     near = _distance_to_box(tx, lo, hi) + _distance_to_box(rx, lo, hi)
     far = _farthest_corner(tx, lo, hi) + _farthest_corner(rx, lo, hi)
@@ -93,11 +101,10 @@ def check_grid_sees_data(ds, grid: Grid) -> None:
     if np.any((near <= last) & (far >= first)):
         return
     raise InputError(
-        f"no voxel of the grid lies within what any ping recorded: round-trip paths to the "
-        f"grid are {near.min():.3f} .. {far.max():.3f} m, the waveforms cover "
+        f"{what} lies within what any ping recorded: round-trip paths to it are "
+        f"{near.min():.3f} .. {far.max():.3f} m, the waveforms cover "
         f"{first.min():.3f} .. {last.max():.3f} m (samples {k0} .. {k0 + t - 1} at "
-        f"{ds.fs:g} Hz); check --bounds and the dataset's start_sample "
-        "(the volume would be all zero)")
+        f"{ds.fs:g} Hz); {hint}")
 
 
 def check_grid(ds, grid: Grid, bytes_per_voxel: float = BYTES_PER_VOXEL) -> Grid:

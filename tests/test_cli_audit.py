@@ -153,3 +153,14 @@ def test_an_output_named_for_another_format_is_refused(files, tmp_path, capsys, 
     assert recon_main([*args, option, str(out)]) == 2
     assert f"{option} {out}: the file is written as" in one_line_error(capsys)
     assert not out.exists() and not (tmp_path / "r.ply").exists()
+
+
+def test_refine_refuses_a_start_mesh_the_scan_never_recorded(files, tmp_path, capsys):
+    """Once: a start mesh in millimetres (x1000) ran to exit 0 with misfit 1.000."""
+    big = trimesh.load(files / "s.ply")
+    big.apply_scale(1000.0)
+    start, out = tmp_path / "mm.ply", tmp_path / "r.ply"
+    big.export(start)
+    assert recon_main(["refine", str(files / "ds.h5"), "--init", str(start), "--out", str(out),
+                       *REFINE_QUICK]) == 2
+    assert "no part of the start mesh" in one_line_error(capsys) and not out.exists()

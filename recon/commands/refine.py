@@ -189,6 +189,10 @@ def run(args: argparse.Namespace) -> int:
     ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None),
                               refuse_silence="there is nothing to fit")
     starts = initial_meshes(args, ds)
+    from ..checks import check_box_sees_data
+    for k, init in starts:
+        check_box_sees_data(ds, *init.bounds, f"--init {args.init}: no part of the start mesh",
+                            "is it in metres and in the dataset's frame? (nothing to fit)")
     if args.keep_candidates:
         from sonarsim.outputs import check_output
         named = {Path(args.out).resolve()} | ({Path(args.history).resolve()}
