@@ -331,6 +331,10 @@ def parse_free(names) -> tuple:
     return tuple(p for p in PARAMETERS if p in chosen)
 
 
+class _OutOfEvaluations(Exception):
+    """The search used its ``max_evaluations`` (raised inside scipy's objective)."""
+
+
 def fit(dataset, grid: Grid, *, free=("sound_speed", "time_offset", "rig_offset"),
         start: Calibration | None = None, upsample: int = 4, per_ping_sound_speed: bool = True,
         max_evaluations: int = 60, curvature: bool = True, log=None) -> CalibrationResult:
@@ -359,6 +363,8 @@ def fit(dataset, grid: Grid, *, free=("sound_speed", "time_offset", "rig_offset"
         return theta
 
     def objective(x):
+        if len(history) >= int(max_evaluations):
+            raise _OutOfEvaluations        # scipy's maxfun is not a hard limit (line searches)
         theta = theta_of(x)
         s, g = problem.focus_and_gradient(Calibration.from_vector(theta))
         history.append((len(history), s, theta.tolist()))
@@ -379,8 +385,16 @@ def fit(dataset, grid: Grid, *, free=("sound_speed", "time_offset", "rig_offset"
         left = int(max_evaluations) - len(history)
         if left < 2:
             break
-        res = scipy.optimize.minimize(objective, x, jac=True, method="L-BFGS-B", bounds=bounds,
-                                      options={"maxfun": left, "ftol": 1e-7, "gtol": 1e-6})
+        try:
+            res = scipy.optimize.minimize(objective, x, jac=True, method="L-BFGS-B",
+                                          bounds=bounds,
+                                          options={"maxfun": left, "ftol": 1e-7, "gtol": 1e-6})
+        except _OutOfEvaluations:
+            _, s, theta = max(history, key=lambda h: h[1])        # the best focus evaluated
+            if -math.log(s) < f_best:
+                x, f_best = np.asarray(theta)[idx] * scale, -math.log(s)
+            message = f"stopped after --max-evaluations {int(max_evaluations)}"
+            break
         improved = f_best - float(res.fun)
         if float(res.fun) < f_best:
             x, f_best, message = res.x, float(res.fun), str(res.message)

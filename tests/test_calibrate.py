@@ -127,6 +127,16 @@ def test_fit_recovers_the_sound_speed():
     assert res.calibration.sound_speed == pytest.approx(1.5, abs=0.1)
 
 
+@pytest.mark.parametrize("budget", [2, 3, 5])
+def test_max_evaluations_is_a_hard_limit(budget):
+    """Once: --max-evaluations 2 ran 8 evaluations (scipy's maxfun lets line searches run
+    over). The search stops at the budget and keeps the best focus it evaluated."""
+    res = calibrate.fit(scan(rig_forward=0.004), GRID, free="rig_forward", curvature=False,
+                        max_evaluations=budget)
+    assert 1 <= len(res.history) <= budget
+    assert res.focus_after == pytest.approx(max(h[1] for h in res.history), rel=1e-6)
+
+
 def test_apply_moves_the_scan_onto_the_truth(offset_scan):
     fixed = calibrate.apply(offset_scan, calibrate.Calibration(time_offset=-13e-6))
     truth = scan()

@@ -33,7 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mean-sound-speed", action="store_true",
                         help="ignore per-ping temperatures; start from the dataset's sound speed")
     parser.add_argument("--max-evaluations", type=int, default=60,
-                        help="focus-and-gradient evaluations of L-BFGS-B (default 60)")
+                        help="focus-and-gradient evaluations of L-BFGS-B, a hard limit: the "
+                             "best focus evaluated is kept (default 60; the curvature adds 2 "
+                             "per free parameter)")
     parser.add_argument("--no-curvature", action="store_true",
                         help="skip the curvature (conditioning) at the optimum (2 gradients per "
                              "free parameter)")
