@@ -18,7 +18,7 @@ bistatic geometry:
    k = (2πf/c_i)·(û_TX + û_RX), û the unit vectors from x0 towards TX and RX. This is the
    plane-wave (far-field) approximation about x0: L(x) − L0 ≈ −(û_TX + û_RX)·(x − x0), so the
    phase-referenced spectrum of a scatterer at x is ≈ exp(+j k·(x − x0)).
-4. **Density compensation and window.** With ``weights='density'`` each sample is weighted
+4. **Weights and window.** With ``weights='density'`` each sample is weighted
    by |k|^D·ΔΩ_i (the Jacobian of the polar raster: D = 2 for a 3-D aperture such as the
    cylindrical scan, D = 1 for one circle; ΔΩ_i the aperture area per ping, estimated from
    nearest neighbours of the look directions): the classical inverse of the polar raster,
@@ -26,6 +26,8 @@ bistatic geometry:
    sample alike, the matched-filter sum: with no taper, a wide band and the reference
    point at the voxel it is then the same sum as backprojection (:mod:`recon.backprojection`),
    evaluated in the Fourier domain. Either way a Tukey window over the band (``taper``).
+   Defaults: uniform weights, the band to −40 dB, no window (:data:`DEFAULT_WEIGHTS` ...;
+   the low frequencies they keep carry the object's body, docs/reconstruction.md "Defaults").
 5. **Cartesian grid and inverse FFT.** image(x_l) = Σ_j w_j S_j exp(−j k_j·(x_l − x0)) on the
    voxel centres x_l of a :class:`~recon.grid.Grid`, computed as one type-1 non-uniform FFT
    (``finufft``): finufft spreads the polar samples onto an oversampled Cartesian k-grid
