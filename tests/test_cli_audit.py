@@ -164,3 +164,11 @@ def test_refine_refuses_a_start_mesh_the_scan_never_recorded(files, tmp_path, ca
     assert recon_main(["refine", str(files / "ds.h5"), "--init", str(start), "--out", str(out),
                        *REFINE_QUICK]) == 2
     assert "no part of the start mesh" in one_line_error(capsys) and not out.exists()
+
+
+def test_grow_options_without_grow_are_refused(files, tmp_path, capsys):
+    """Once: --grow-threshold without --grow was silently ignored."""
+    out = tmp_path / "r.ply"
+    assert recon_main(["refine", str(files / "ds.h5"), "--init", str(files / "ds_vol.h5"),
+                       "--grow-threshold", "0.5", "--out", str(out), *REFINE_QUICK]) == 2
+    assert "apply with --grow" in one_line_error(capsys) and not out.exists()

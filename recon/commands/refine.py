@@ -14,6 +14,7 @@ HELP = ("Refine a surface mesh (from a volume's iso-surface or a mesh file) by f
         "rendered waveforms to the dataset's (docs/refine.md).")
 OUTPUTS = ("out", "history")
 OUTPUT_SUFFIXES = {"history": (".json",)}
+GROW_THRESHOLD = 0.2           # --grow-threshold's default
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 
 OPTION_HELP = {
@@ -67,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "added to it before the wrap; use with --support-steps, which "
                              "keeps what the data supports. Experimental: it halved the Table-2 "
                              "bunny and made a held-out box 5x worse (docs/refine.md 'Grown starts')")
-    parser.add_argument("--grow-threshold", type=float, default=0.2,
+    parser.add_argument("--grow-threshold", type=float, default=GROW_THRESHOLD,
                         help="--grow: level of the second volume's normalised |value| (default 0.2)")
     parser.add_argument("--grow-beyond", type=float, default=0.0, metavar="K",
                         help="--grow: add only structure that reaches farther than K x the range "
@@ -129,6 +130,9 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
         raise InputError(f"--init {path}: file not found")
     import numpy as np
     grow_path = getattr(args, "grow", None)
+    if grow_path is None and (args.grow_threshold != GROW_THRESHOLD or args.grow_beyond != 0):
+        raise InputError("--grow-threshold and --grow-beyond apply with --grow VOLUME; "
+                         "without it they would be ignored")
     given = None if args.wrap is None else wrap_factors(args.wrap)
     if path.suffix.lower() == ".h5":
         factors = wrap_factors(DEFAULT_WRAP) if given is None else given
