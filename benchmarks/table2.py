@@ -268,9 +268,7 @@ def scene_spec(name: str, out: Path, source: str = "auto") -> tuple[str, str] | 
     from sonarsim import data
     mesh = data.root() / "meshes" / f"{name}.obj"
     if source in ("auto", "shared") and mesh.is_file():
-        # absolute: the manifest that names it lives in out/batch and resolves relative
-        # paths against its own folder, not against the working directory of --out
-        toml = (out / "data" / f"{name}.toml").resolve()
+        toml = out / "data" / f"{name}.toml"
         toml.parent.mkdir(parents=True, exist_ok=True)
         text = f'name = "{name}"\nground = true\n\n[[object]]\nmesh = "{mesh}"\nfit = false\n'
         if not toml.is_file() or toml.read_text() != text:

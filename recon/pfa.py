@@ -140,7 +140,7 @@ def band(dataset, n_fft: int, band_db: float) -> tuple[np.ndarray, np.ndarray]:
     return bins, power[bins]
 
 
-def aperture_weights(look: np.ndarray) -> tuple[np.ndarray, int]:
+def aperture_weights(look: np.ndarray, areas: bool = True) -> tuple[np.ndarray, int]:
     """(aperture area per ping ΔΩ_i [N] (mean 1), dimension D of the aperture: 1 or 2).
 
     ``look`` [N, 3] unit look directions. D = 1 when they lie on one plane (a circle or an
@@ -149,16 +149,20 @@ def aperture_weights(look: np.ndarray) -> tuple[np.ndarray, int]:
     of an anisotropic raster such as the cylindrical scan's 1° in azimuth × 0.3° in
     elevation), clipped to 2× the median so that pings on the edge of the aperture
     (half-neighbourhoods) are not overweighted. A rough estimate; exact for uniform rasters.
+    ``areas=False``: D only, ΔΩ all 1 (the k-th neighbours, most of the cost, are not searched).
     """
     n = len(look)
     if n < 4:
         return np.ones(n), 1
     from scipy.spatial import cKDTree
     k = min(max(_NEIGHBOURS[0], int(2 * math.sqrt(n))), _NEIGHBOURS[1], n - 2)
-    d, _ = cKDTree(look).query(look, k=[2, k + 1])   # column 0 of k=1 is the point itself
+    # column 0 of k=1 would be the point itself
+    d, _ = cKDTree(look).query(look, k=[2, k + 1] if areas else [2])
     spacing = float(np.median(d[:, 0]))
     off_plane = np.linalg.svd(look - look.mean(axis=0), compute_uv=False)[-1] / math.sqrt(n)
     dim = 1 if off_plane <= 0.25 * max(spacing, 1e-12) else 2
+    if not areas:
+        return np.ones(n), dim
     area = np.maximum(d[:, 1], 1e-12) ** dim
     area = np.minimum(area, 2 * float(np.median(area)))
     return area / area.mean(), dim
@@ -206,7 +210,7 @@ def polar_samples(dataset, grid: Grid, *, reference_point=None,
     n_fft = fft_length(dataset, x0, grid, c)
     bins, power = band(dataset, n_fft, band_db)
     freqs = bins * float(dataset.fs) / n_fft
-    area, dim = aperture_weights(look_sum / norm[:, None])
+    area, dim = aperture_weights(look_sum / norm[:, None], areas=weights == "density")
     kmag = 2 * np.pi * freqs[None, :] / c[:, None] * norm[:, None]      # [N, F]
     window = tukey((freqs - freqs[0]) / max(freqs[-1] - freqs[0], 1e-300), float(taper))
     if weights == "uniform":

@@ -122,13 +122,12 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
     """[(wrap factor, start mesh)] of ``--init``: a volume's iso-surface wrapped at each
     ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file."""
     from ..refine import range_resolution, start_mesh
+    import numpy as np
     path = args.init
-    import math
-    if not math.isfinite(args.z_min):
+    if not np.isfinite(args.z_min):
         raise InputError(f"--z-min: must be a finite height in metres, got {args.z_min}")
     if not path.is_file():
         raise InputError(f"--init {path}: file not found")
-    import numpy as np
     grow_path = getattr(args, "grow", None)
     if grow_path is None and (args.grow_threshold != GROW_THRESHOLD or args.grow_beyond != 0):
         raise InputError("--grow-threshold and --grow-beyond apply with --grow VOLUME; "
