@@ -40,6 +40,14 @@ occupancy whose boundary is the surface. :func:`solidify` makes one from the fie
    not a surface the scan saw, so the field holds no evidence of an opening there; a real
    container shows its floor. Made for the cube, whose top face the field barely holds
    (docs/reconstruction.md "Open cavities without a floor").
+7. **smooth the boundary** (with ``smooth`` > 0, voxels): the solid's indicator (1 inside, 0
+   outside) is smoothed by a Gaussian of ``smooth`` voxels and cut again at one half. Bumps,
+   dents and stair steps narrower than the kernel go, flat faces become flat, the volume of
+   a body much thicker than the kernel barely changes (a convex edge is rounded to a radius
+   of about ``smooth`` voxels). Outside the box the solid continues as its outermost plane
+   (so the base of an object on the ground is not eaten away). Thin parts go: at ``smooth``
+   = 2 a wall 4 voxels thick stays, one 2 voxels thick (or a rod 5 voxels across)
+   vanishes (:func:`smooth_boundary`; docs/reconstruction.md "Smoothed solid boundary").
 
 What it does to other objects: an open object (a bowl open upward, an arch, a tube open at an
 end) keeps its opening, because its inside is joined to the boundary through it, and is not
@@ -57,7 +65,7 @@ import numpy as np
 from sonarsim.errors import InputError
 
 DEFAULTS = dict(threshold=0.2, min_fraction=0.1, close=1, floor=True, hidden=0, quorum=1.0,
-                cavity_floor=0.0, blur=0.0, threshold_mode="peak")
+                cavity_floor=0.0, blur=0.0, threshold_mode="peak", smooth=0.0)
 THRESHOLD_MODES = ("peak", "otsu")
 # The Otsu level is taken over the voxels above this fraction of the peak: the empty box
 # (most of the grid, |σ| ≈ 0) would otherwise be one of the two classes.
@@ -139,6 +147,18 @@ def close_gaps(occupied: np.ndarray, radius: int) -> np.ndarray:
     pad = radius + 1
     closed = _ndimage().binary_closing(np.pad(occupied, pad), iterations=radius)
     return occupied | closed[pad:-pad, pad:-pad, pad:-pad]
+
+
+def smooth_boundary(occupied: np.ndarray, sigma: float) -> np.ndarray:
+    """bool like ``occupied``: step 7, the indicator smoothed by a Gaussian of ``sigma`` voxels
+    and cut at 0.5 (``sigma`` = 0: a copy). Beyond the box the indicator repeats its outermost
+    plane (``mode='nearest'``): an object standing on the lowest plane, or leaving the box, is
+    not rounded off where the box cuts it."""
+    occupied = np.asarray(occupied, dtype=bool)
+    if not sigma > 0 or not occupied.any():
+        return occupied.copy()
+    smoothed = _ndimage().gaussian_filter(occupied.astype(np.float32), float(sigma), mode="nearest")
+    return smoothed > 0.5
 
 
 def fill_enclosed(occupied: np.ndarray, floor: bool) -> np.ndarray:
@@ -265,7 +285,8 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
              quorum: float = DEFAULTS["quorum"],
              cavity_floor: float = DEFAULTS["cavity_floor"],
              blur: float = DEFAULTS["blur"],
-             threshold_mode: str = DEFAULTS["threshold_mode"]) -> np.ndarray:
+             threshold_mode: str = DEFAULTS["threshold_mode"],
+             smooth: float = DEFAULTS["smooth"]) -> np.ndarray:
     """bool [nx, ny, nz]: the solid occupancy of a reconstructed field (module docstring).
 
     volume: complex or real [nx, ny, nz] (z the vertical axis, index 0 the lowest plane).
@@ -273,13 +294,15 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     scan's sensor positions (m) and bounds [3, 2] the volume's box (m), both needed with
     ``hidden`` > 0; quorum: the fraction of those sensors a voxel must be hidden from;
     cavity_floor: step 6's support distance in metres (0 = step 6 off; needs ``bounds``);
-    blur (voxels) and threshold_mode ('peak' | 'otsu'): step 1's magnitude and cut.
+    blur (voxels) and threshold_mode ('peak' | 'otsu'): step 1's magnitude and cut;
+    smooth: step 7's Gaussian in voxels (0 = off).
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise InputError(f"solid extraction: expected a 3-D volume, got shape {volume.shape}")
     check_parameters(threshold, min_fraction, close, mode=threshold_mode)
     check_blur(blur)
+    check_blur(smooth, "solid smooth")
     if int(hidden) != hidden or hidden < 0:
         raise InputError(f"solid hidden: must be an integer >= 0, got {hidden}")
     check_quorum(quorum)
@@ -293,7 +316,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
     data = close_gaps(occupied, int(close))
     occupied = fill_enclosed(data, bool(floor))
     if int(hidden) <= 0 and not cavity_floor > 0:
-        return occupied
+        return smooth_boundary(occupied, float(smooth))
     bounds = np.asarray(bounds, dtype=np.float64)
     n = np.array(volume.shape)
     spacing = (bounds[:, 1] - bounds[:, 0]) / np.maximum(n - 1, 1)
@@ -305,7 +328,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
         reach = int(round(cavity_floor / spacing[2])) if spacing[2] > 0 else 0
         occupied = fill_enclosed(occupied | floorless_cavities(occupied, data, reach, bool(floor)),
                                  bool(floor))
-    return occupied
+    return smooth_boundary(occupied, float(smooth))
 
 
 def floorless_cavities(occupied: np.ndarray, data: np.ndarray, reach: int,

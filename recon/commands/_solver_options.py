@@ -109,7 +109,9 @@ def run(args, network: bool) -> int:
     cut = (f"{vol.params.get('solid_level', settings.solid_threshold):.3g} of the peak"
            + (f" = {settings.solid_threshold:g} x the Otsu level"
               if settings.solid_threshold_mode == "otsu" else "")
-           + (f", |σ| smoothed by {settings.solid_blur:g} voxels" if settings.solid_blur > 0 else ""))
+           + (f", |σ| smoothed by {settings.solid_blur:g} voxels" if settings.solid_blur > 0 else "")
+           + (f", boundary smoothed by {settings.solid_smooth:g} voxels"
+              if settings.solid_smooth > 0 else ""))
     solid = (f"; exported the solid occupancy ({vol.params['solid_voxels']} voxels, threshold "
              f"{cut}; --output field for the field)"
              if "solid_voxels" in vol.params else "")

@@ -225,7 +225,8 @@ def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarra
                               quorum=float(settings.solid_hidden_quorum),
                               cavity_floor=float(settings.solid_cavity_floor),
                               blur=float(settings.solid_blur),
-                              threshold_mode=settings.solid_threshold_mode)
+                              threshold_mode=settings.solid_threshold_mode,
+                              smooth=float(settings.solid_smooth))
     above, level = solid.step_one(field, settings.solid_threshold, float(settings.solid_blur),
                                   settings.solid_threshold_mode)
     return occupied.astype(np.complex64), int(np.count_nonzero(above)), level

@@ -72,6 +72,7 @@ class SolverSettings(NetworkSettings):
     solid_cavity_floor: float = 0.02
     solid_blur: float = 0.7
     solid_threshold_mode: str = "otsu"
+    solid_smooth: float = 0.0          # voxels: Gaussian on the solid's indicator, re-cut at 1/2
 
     def validate(self):
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
@@ -104,6 +105,7 @@ class SolverSettings(NetworkSettings):
             raise InputError(f"solid_hidden: must be an integer in [0, 4096], got {self.solid_hidden}")
         from ..solid import check_blur, check_cavity_floor, check_quorum
         check_blur(self.solid_blur, "solid_blur")
+        check_blur(self.solid_smooth, "solid_smooth")
         check_quorum(self.solid_hidden_quorum, "solid_hidden_quorum")
         check_cavity_floor(self.solid_cavity_floor, "solid_cavity_floor")
         if not 0 < self.beamwidth_deg <= 360:
@@ -204,6 +206,8 @@ HELP = {
                             "on the field's own Otsu level: recon.solid step 1)",
     "solid_blur": "solid: smooth |σ| with a Gaussian of this many voxels before the threshold "
                   "(0 = off; recon.solid step 1)",
+    "solid_smooth": "solid: smooth the solid's boundary with a Gaussian of this many voxels on "
+                    "its indicator, cut again at one half (0 = off; recon.solid step 7)",
     "solid_min_fraction": "solid: drop connected parts smaller than this fraction of the largest "
                           "(floaters)",
     "solid_close": "solid: close gaps of the occupied set by this many voxels",
