@@ -329,6 +329,9 @@ def test_frozen_presets_are_every_entry_points_default():
     assert (solver.PRESETS["gd"]["solid_threshold_mode"], solver.PRESETS["gd"]["solid_blur"]) == ("otsu", 0.7)
     assert (solver.PRESETS["nbp"]["solid_threshold_mode"], solver.PRESETS["nbp"]["solid_blur"]) == ("peak", 0.0)
     assert solver.PRESETS["gd"]["solid_hidden"] == solver.PRESETS["nbp"]["solid_hidden"] == 256
+    # both smooth the solid's boundary by 1 voxel (1.5 erased a held-out rod; docs
+    # "Smoothed solid boundary")
+    assert solver.PRESETS["gd"]["solid_smooth"] == solver.PRESETS["nbp"]["solid_smooth"] == 1.0
     # NBP: hidden from 80 % of those sensors suffices (porous shells); GD: from every one
     # (0.8 closed a held-out arch's tunnel in GD's solid; measured, docs)
     assert (solver.PRESETS["nbp"]["solid_hidden_quorum"],
@@ -355,11 +358,11 @@ def test_solid_output_is_the_solid_of_the_same_run(point_ds):
                    **dict(small, output="solid", solid_threshold=1.2, solid_close=0))
     # step 1 as the preset's (|σ| smoothed by 0.7 voxel, a factor on its Otsu level), step 5
     # (the preset's solid_hidden) from the scan's sensor positions, the tx–rx midpoints, and
-    # step 6 (the preset's solid_cavity_floor)
+    # step 6 (the preset's solid_cavity_floor), step 7 (its solid_smooth)
     expected = solid.solidify(field.volume, threshold=1.2, min_fraction=0.1, close=0, floor=True,
                               hidden=256, sensors=0.5 * (point_ds.tx + point_ds.rx),
                               bounds=g.bounds, quorum=1.0, cavity_floor=0.02, blur=0.7,
-                              threshold_mode="otsu")
+                              threshold_mode="otsu", smooth=1.0)
     assert 0 < expected.sum() < expected.size
     np.testing.assert_array_equal(out.volume, expected.astype(np.complex64))
     assert out.params["solid_voxels"] == int(expected.sum())
