@@ -45,9 +45,11 @@ occupancy whose boundary is the surface. :func:`solidify` makes one from the fie
    dents and stair steps narrower than the kernel go, flat faces become flat, the volume of
    a body much thicker than the kernel barely changes (a convex edge is rounded to a radius
    of about ``smooth`` voxels). Outside the box the solid continues as its outermost plane
-   (so the base of an object on the ground is not eaten away). Thin parts go: at ``smooth``
-   = 2 a wall 4 voxels thick stays, one 2 voxels thick (or a rod 5 voxels across)
-   vanishes (:func:`smooth_boundary`; docs/reconstruction.md "Smoothed solid boundary").
+   (so the base of an object on the ground is not eaten away). Thin parts of a body go: at
+   ``smooth`` = 2 a wall 4 voxels thick stays, one 2 voxels thick (or a rod 5 voxels across)
+   vanishes; a separate part of which nothing would remain (a small object, a point target)
+   is kept as it was (:func:`smooth_boundary`; docs/reconstruction.md "Smoothed solid
+   boundary").
 
 What it does to other objects: an open object (a bowl open upward, an arch, a tube open at an
 end) keeps its opening, because its inside is joined to the boundary through it, and is not
@@ -153,12 +155,20 @@ def smooth_boundary(occupied: np.ndarray, sigma: float) -> np.ndarray:
     """bool like ``occupied``: step 7, the indicator smoothed by a Gaussian of ``sigma`` voxels
     and cut at 0.5 (``sigma`` = 0: a copy). Beyond the box the indicator repeats its outermost
     plane (``mode='nearest'``): an object standing on the lowest plane, or leaving the box, is
-    not rounded off where the box cuts it."""
+    not rounded off where the box cuts it. A 26-connected part of ``occupied`` of which nothing
+    would remain is kept unchanged (a small object or a point target is not erased)."""
     occupied = np.asarray(occupied, dtype=bool)
     if not sigma > 0 or not occupied.any():
         return occupied.copy()
-    smoothed = _ndimage().gaussian_filter(occupied.astype(np.float32), float(sigma), mode="nearest")
-    return smoothed > 0.5
+    ndimage = _ndimage()
+    smoothed = ndimage.gaussian_filter(occupied.astype(np.float32), float(sigma), mode="nearest") > 0.5
+    # a whole part the smoothing would erase (a small object, a point target) is kept as it was
+    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    kept = np.bincount(labels[smoothed], minlength=count + 1)
+    lost = np.flatnonzero(kept[1:] == 0) + 1
+    if lost.size:
+        smoothed |= np.isin(labels, lost)
+    return smoothed
 
 
 def fill_enclosed(occupied: np.ndarray, floor: bool) -> np.ndarray:

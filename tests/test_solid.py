@@ -451,10 +451,25 @@ def test_smoothing_thins_walls_below_its_width(sigma, kept, lost):
     thick is gone."""
     for width, survives in ((kept, True), (lost, False)):
         wall = np.zeros((N, N, N), dtype=bool)
-        wall[5:35, 20:20 + width, 0:30] = True
+        wall[5:35, 12:12 + width, 0:30] = True
+        wall[5:35, 28:38, 0:30] = True           # the body the wall stands apart from
+        wall[5:35, 12 + width:28, 0:3] = True    # joined to it by a slab on the ground
         out = solid.smooth_boundary(wall, sigma)
-        assert out[10:30, 20:20 + width, 5:25].all() == survives
-        assert out[10:30, 20:20 + width, 5:25].any() == survives
+        assert out[10:30, 12:12 + width, 5:25].all() == survives
+        assert out[10:30, 12:12 + width, 5:25].any() == survives
+        assert out[10:30, 31:35, 5:25].all()
+
+
+def test_smoothing_never_erases_a_whole_part():
+    """A separate part of which nothing would remain (a point target's blob, a thin plate) is
+    kept as it was; the block beside it is smoothed."""
+    occupied = _block()
+    occupied[34:36, 34:36, 30:32] = True     # a 2-voxel blob, gone under any smoothing
+    occupied[2:8, 2:38, 30] = True           # a plate one voxel thick
+    occupied[30, 18:20, 8:10] = True         # a bump on the block
+    out = solid.smooth_boundary(occupied, 1.0)
+    assert out[34:36, 34:36, 30:32].all() and out[2:8, 2:38, 30].all()
+    assert not out[30, 18:20, 8:10].any()
 
 
 def test_solidify_applies_the_smoothing_last():
