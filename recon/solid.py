@@ -131,9 +131,15 @@ def threshold_level(relative: np.ndarray, threshold: float, mode: str = "peak") 
     return float(threshold) * float(threshold_otsu(values))
 
 
+def parts(occupied: np.ndarray) -> tuple[np.ndarray, int]:
+    """(int labels like ``occupied``, count): its 26-connected parts, numbered from 1 (the
+    connectivity every step of this module means by a part)."""
+    return _ndimage().label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+
+
 def drop_small_components(occupied: np.ndarray, min_fraction: float) -> np.ndarray:
     """Keep the 26-connected components of at least ``min_fraction`` × the largest's size."""
-    labels, n = _ndimage().label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, n = parts(occupied)
     if n <= 1:
         return occupied.copy()
     sizes = np.bincount(labels.ravel())[1:]
@@ -160,10 +166,10 @@ def smooth_boundary(occupied: np.ndarray, sigma: float) -> np.ndarray:
     occupied = np.asarray(occupied, dtype=bool)
     if not sigma > 0 or not occupied.any():
         return occupied.copy()
-    ndimage = _ndimage()
-    smoothed = ndimage.gaussian_filter(occupied.astype(np.float32), float(sigma), mode="nearest") > 0.5
+    smoothed = _ndimage().gaussian_filter(occupied.astype(np.float32), float(sigma),
+                                          mode="nearest") > 0.5
     # a whole part the smoothing would erase (a small object, a point target) is kept as it was
-    labels, count = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, count = parts(occupied)
     kept = np.bincount(labels[smoothed], minlength=count + 1)
     lost = np.flatnonzero(kept[1:] == 0) + 1
     if lost.size:
