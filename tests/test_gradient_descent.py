@@ -316,9 +316,11 @@ def test_frozen_presets_are_every_entry_points_default():
     assert gd.settings_for() == solver.settings_for(None)
     # the network preset: the 'cpu' sizes with 300 steps (measured against 150 / 500 / 1 000
     # on the Table-2 shapes, a held-out box and the full-size cube: docs "Fit length")
+    # and three fits whose solids vote (a failed seed outvoted; docs "Ensemble of three fits")
     assert nbp.settings_for() == dataclasses.replace(solver.settings_for("cpu", network=True),
-                                                     iterations=300)
+                                                     iterations=300, ensemble=3)
     assert solver.PRESETS["nbp"]["iterations"] == 300 and solver.PRESETS["gd"]["iterations"] == 1000
+    assert (solver.PRESETS["nbp"]["ensemble"], solver.settings_for("gd").ensemble) == (3, 1)
     fields = {f.name for f in dataclasses.fields(solver.SolverSettings)}
     assert set(solver.PRESETS["gd"]) <= fields and set(solver.PRESETS["nbp"]) <= fields
     # both export the solid occupancy (recon.solid), each with its measured threshold

@@ -255,36 +255,84 @@ def loss_by_tenth(history: list[dict], key: str) -> list[float]:
     return [float(c.mean()) for c in np.array_split(values, min(10, values.size))]
 
 
+def member_checkpoint(checkpoint, member: int):
+    """The checkpoint path of ensemble member ``member`` (0-based): the path itself for the
+    first, ``NAME.memberK.npz`` (K = member + 1) beside it for the others; None stays None."""
+    if checkpoint is None or member == 0:
+        return checkpoint
+    p = Path(checkpoint)
+    return p.with_name(f"{p.stem}.member{member + 1}{p.suffix}")
+
+
+def combine_members(volumes: list, output: str) -> np.ndarray:
+    """One volume from the ensemble members' volumes [K][nx, ny, nz]: for solids (0/1) a voxel
+    is kept when more than half of the members hold it (majority vote); for fields the mean
+    of the complex fields."""
+    if len(volumes) == 1:
+        return volumes[0]
+    if output == "solid":
+        votes = np.sum([np.abs(v) > 0.5 for v in volumes], axis=0)
+        return (2 * votes > len(volumes)).astype(np.complex64)
+    return np.mean(np.stack(volumes), axis=0).astype(np.complex64)
+
+
 def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None = None,
           checkpoint=None, checkpoint_every: int = CHECKPOINT_EVERY, resume: bool = False,
           progress: bool = True, callback=None, export_grid: Grid | None = None, timer=None,
           **overrides):
     """Run the solver and return a :class:`~sonarsim.dataset.Volume` (``method``) on ``grid``
     (or the scene sampled on ``export_grid``), with the settings, final loss and info in
-    ``params``. ``callback(iteration, record)`` gets each iteration's loss terms."""
+    ``params``. ``callback(iteration, record)`` gets each iteration's loss terms.
+
+    With ``ensemble`` K > 1 the scene is fitted K times with the seeds ``seed`` … ``seed + K
+    − 1`` and the members' volumes are combined (:func:`combine_members`); the loss entries
+    of ``params`` are the first member's, ``ensemble_*`` lists hold every member's; member k
+    checkpoints to :func:`member_checkpoint` (a resumed run skips the finished members)."""
     from sonarsim.dataset import Volume
     settings = settings_for(preset, network=network, **overrides)
     check_resources(grid, settings, network)
-    scene = make_scene(grid, settings, network)
-    params, history, info = fit(dataset, grid, settings, scene, checkpoint=checkpoint,
-                                checkpoint_every=checkpoint_every, resume=resume,
-                                progress=progress, callback=callback, desc=method, timer=timer)
     out_grid = grid if export_grid is None else export_grid
-    vol = scene.volume(params, out_grid)
+    members = int(settings.ensemble)
+    sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
+    volumes, runs = [], []
+    for k in range(members):
+        member = dataclasses.replace(settings, seed=settings.seed + k)
+        scene = make_scene(grid, member, network)
+        desc = method if members == 1 else f"{method} {k + 1}/{members}"
+        params, history, info = fit(dataset, grid, member, scene,
+                                    checkpoint=member_checkpoint(checkpoint, k),
+                                    checkpoint_every=checkpoint_every, resume=resume,
+                                    progress=progress, callback=callback, desc=desc, timer=timer)
+        vol = scene.volume(params, out_grid)
+        run = {"history": history, "info": info, "kind": scene.kind}
+        if settings.output == "solid":
+            vol, run["field_occupied_voxels"], run["solid_level"] = solid_volume(
+                vol, member, sensors, out_grid.bounds)
+            run["solid_voxels"] = int(np.count_nonzero(vol))
+        volumes.append(vol)
+        runs.append(run)
+    vol = combine_members(volumes, settings.output)
+    first = runs[0]
+    history = first["history"]
     p = {k: v for k, v in asdict(settings).items() if applies_to(k, network)}
     if settings.output == "solid":
-        sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
-        vol, p["field_occupied_voxels"], p["solid_level"] = solid_volume(vol, settings, sensors,
-                                                                         out_grid.bounds)
+        p["field_occupied_voxels"], p["solid_level"] = (first["field_occupied_voxels"],
+                                                        first["solid_level"])
         p["solid_voxels"] = int(np.count_nonzero(vol))
     p["preset"] = preset or "none"
-    p["scene"] = scene.kind
+    p["scene"] = first["kind"]
     p["final_loss"] = float(history[-1]["loss"]) if history else float("nan")
     p["final_data_loss"] = float(history[-1]["data"]) if history else float("nan")
     p["data_loss_by_tenth"] = loss_by_tenth(history, "data")
     p["loss_by_tenth"] = loss_by_tenth(history, "loss")
     p["n_pings"] = int(len(dataset.waveforms))
-    p.update(info)
+    p.update(first["info"])
+    if members > 1:
+        p["ensemble_seeds"] = [settings.seed + k for k in range(members)]
+        p["ensemble_final_data_loss"] = [float(r["history"][-1]["data"]) if r["history"]
+                                         else float("nan") for r in runs]
+        if settings.output == "solid":
+            p["ensemble_solid_voxels"] = [r["solid_voxels"] for r in runs]
     return Volume(volume=vol, bounds=np.asarray(out_grid.bounds, dtype=np.float64), method=method,
                   params=p)
 

@@ -24,6 +24,7 @@ class SolverSettings(NetworkSettings):
 
     iterations: int = 1000
     seed: int = 0
+    ensemble: int = 1
     lr: float = 2e-2
     lr_final: float | None = 2e-3
     lr_units: str = "relative"
@@ -75,6 +76,9 @@ class SolverSettings(NetworkSettings):
     solid_smooth: float = 1.0          # voxels: Gaussian on the solid's indicator, re-cut at 1/2
 
     def validate(self):
+        if not (isinstance(self.ensemble, (int, np.integer)) and not isinstance(self.ensemble, bool)
+                and 1 <= self.ensemble <= MAX_ENSEMBLE):
+            raise InputError(f"ensemble: must be an integer in [1, {MAX_ENSEMBLE}], got {self.ensemble!r}")
         for name in ("iterations", "pings_per_iteration", "bins_per_ping", "n_rays"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
@@ -114,6 +118,9 @@ class SolverSettings(NetworkSettings):
         check_settings(self)
 
 
+# Most ensemble members of one run (each is a whole fit).
+MAX_ENSEMBLE = 16
+
 # Iterations between checkpoints: one default for recon gd/nbp, their Python API and the CLI.
 CHECKPOINT_EVERY = 100
 
@@ -137,6 +144,9 @@ CHOICES = {"lr_units": ("relative", "absolute"), "init": ("bp", "random"),
 HELP = {
     "iterations": "optimiser steps",
     "seed": "random seed (pings, bins, rays, initialisation)",
+    "ensemble": "fit the scene this many times, with the seeds seed, seed+1, …, and combine: "
+                "the solid keeps the voxels more than half of the members' solids hold, the "
+                "field output is the members' mean field (each member costs a whole fit)",
     "lr": "Adam learning rate (× the voxel scale max|scaled BP| if lr_units is relative)",
     "lr_final": "learning rate at the last step, exponential decay from lr (none = constant)",
     "lr_units": "'relative': lr in units of max|scaled backprojection|; 'absolute': parameter units",
@@ -276,6 +286,10 @@ PRESETS = {
                 bins_per_ping=64, n_rays=600, beamwidth_deg=30.0, scale_factor=10.0,
                 hash_levels=12, hash_features=2, hash_log2_size=15, hash_base_resolution=16,
                 hash_level_scale=1.5, mlp_width=32, mlp_hidden=1, occupancy=False,
+                # three fits (seeds seed..seed+2), majority vote of their solids: a seed's failed
+                # solid (cube, cylinder, sphere: Chamfer² × 2–3) is outvoted (2026-11-28,
+                # docs/reconstruction.md "Ensemble of three fits")
+                ensemble=3,
                 # hidden from 80 % of the sensors fills porous shells (2026-11-28; GD keeps 1:
                 # 0.8 closed a held-out arch's tunnel in its solid; docs "hidden-voxel quorum")
                 **SOLID, solid_threshold=0.3, solid_hidden_quorum=0.8,
