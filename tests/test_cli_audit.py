@@ -39,7 +39,7 @@ def test_the_bounce_limit_is_the_integrators():
     """One home for the limit: sonarsim.limits mirrors the plugin's (plugins import no sonarsim)."""
     from sonarsim import runtime
     runtime.mitsuba()
-    from plugins.sonar_transient import MAX_BOUNCES_LIMIT
+    from sonarsim.plugins.sonar_transient import MAX_BOUNCES_LIMIT
     assert MAX_BOUNCES == MAX_BOUNCES_LIMIT
 
 
