@@ -32,7 +32,11 @@ def test_combine_members_votes_solids_and_averages_fields():
     f1 = np.full((2, 2, 1), 1 + 1j, np.complex64)
     f2 = np.full((2, 2, 1), 3 - 1j, np.complex64)
     np.testing.assert_allclose(combine_members([f1, f2], "field"), 2 + 0j)
-    assert combine_members([f1], "field") is f1
+    np.testing.assert_array_equal(combine_members([f1], "field"), f1)
+    # a single member's solid (bool, as solve keeps them) comes back as its 0/1 volume
+    one = combine_members([np.abs(a) > 0.5], "solid")
+    assert one.dtype == np.complex64
+    np.testing.assert_array_equal(one, a)
 
 
 def test_member_checkpoints_sit_beside_the_first(tmp_path):

@@ -265,14 +265,14 @@ def member_checkpoint(checkpoint, member: int):
 
 
 def combine_members(volumes: list, output: str) -> np.ndarray:
-    """One volume from the ensemble members' volumes [K][nx, ny, nz]: for solids (0/1) a voxel
-    is kept when more than half of the members hold it (majority vote); for fields the mean
-    of the complex fields."""
-    if len(volumes) == 1:
-        return volumes[0]
+    """complex64 [nx, ny, nz]: one volume from the ensemble members' volumes [K][nx, ny, nz]:
+    for solids (bool or 0/1) a voxel is 1 when more than half of the members hold it (majority
+    vote; one member: its solid); for fields the mean of the complex fields."""
     if output == "solid":
         votes = np.sum([np.abs(v) > 0.5 for v in volumes], axis=0)
         return (2 * votes > len(volumes)).astype(np.complex64)
+    if len(volumes) == 1:
+        return np.asarray(volumes[0], dtype=np.complex64)
     return np.mean(np.stack(volumes), axis=0).astype(np.complex64)
 
 
@@ -287,7 +287,8 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     With ``ensemble`` K > 1 the scene is fitted K times with the seeds ``seed`` … ``seed + K
     − 1`` and the members' volumes are combined (:func:`combine_members`); the loss entries
     of ``params`` are the first member's, ``ensemble_*`` lists hold every member's; member k
-    checkpoints to :func:`member_checkpoint` (a resumed run skips the finished members)."""
+    checkpoints to :func:`member_checkpoint` (a resumed run skips the finished members);
+    ``callback`` gets every member's iterations in turn."""
     from sonarsim.dataset import Volume
     settings = settings_for(preset, network=network, **overrides)
     check_resources(grid, settings, network)
@@ -308,6 +309,7 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
         if settings.output == "solid":
             vol, run["field_occupied_voxels"], run["solid_level"] = solid_volume(
                 vol, member, sensors, out_grid.bounds)
+            vol = np.abs(vol) > 0.5         # a member's solid kept as bool: 1 byte a voxel
             run["solid_voxels"] = int(np.count_nonzero(vol))
         volumes.append(vol)
         runs.append(run)
