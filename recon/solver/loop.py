@@ -268,12 +268,16 @@ def combine_members(volumes: list, output: str) -> np.ndarray:
     """complex64 [nx, ny, nz]: one volume from the ensemble members' volumes [K][nx, ny, nz]:
     for solids (bool or 0/1) a voxel is 1 when more than half of the members hold it (majority
     vote; one member: its solid); for fields the mean of the complex fields."""
+    # summed member by member: no stacked copy of all K volumes
     if output == "solid":
-        votes = np.sum([np.abs(v) > 0.5 for v in volumes], axis=0)
+        votes = np.zeros(np.shape(volumes[0]), dtype=np.uint16)
+        for v in volumes:
+            votes += np.abs(v) > 0.5
         return (2 * votes > len(volumes)).astype(np.complex64)
-    if len(volumes) == 1:
-        return np.asarray(volumes[0], dtype=np.complex64)
-    return np.mean(np.stack(volumes), axis=0).astype(np.complex64)
+    total = np.zeros(np.shape(volumes[0]), dtype=np.complex128)
+    for v in volumes:
+        total += v
+    return (total / len(volumes)).astype(np.complex64)
 
 
 def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None = None,
@@ -294,7 +298,8 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     check_resources(grid, settings, network)
     out_grid = grid if export_grid is None else export_grid
     members = int(settings.ensemble)
-    sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
+    sensors = (0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
+               if settings.output == "solid" else None)
     volumes, runs = [], []
     for k in range(members):
         member = dataclasses.replace(settings, seed=settings.seed + k)
