@@ -7,7 +7,7 @@ from recon import gradient_descent as gd
 from recon import solver
 from recon.grid import Grid
 from recon.solver.loop import combine_members, member_checkpoint
-from sonarsim.errors import InputError
+from sonarsim.errors import FormatError, InputError
 
 # The small point-target run of tests/test_gradient_descent.py (linear model, random start)
 SMALL = dict(lambertian=False, occlusion_scale=0.0, sparsity=0.0, bins_per_ping=8, n_rays=300,
@@ -98,3 +98,71 @@ def test_ensemble_checkpoints_every_member_and_resumes(point_target_scan, tmp_pa
 def test_bad_ensemble_sizes_are_refused(bad):
     with pytest.raises(InputError, match="ensemble"):
         gd.settings_for(ensemble=bad)
+
+
+# ---------------------------------------------------------------- members in worker processes
+
+def test_parallel_members_give_the_sequential_volumes_to_the_bit(point_target_scan, members):
+    """Members fitted in worker processes (2 at a time) equal the same fits run in turn here,
+    bit for bit, for a solid and a field; the callback hears every member's iterations."""
+    seen = []
+    out = gd.solve(point_target_scan, GRID, iterations=6, seed=4, ensemble=3, progress=False,
+                   callback=lambda i, r: seen.append((r["member"], i)), **SMALL)
+    assert out.params["ensemble_seeds"] == [4, 5, 6]
+    np.testing.assert_array_equal(
+        out.volume, combine_members([members[s][0].volume for s in (4, 5, 6)], "field"))
+    assert sorted(seen) == [(m, i) for m in range(3) for i in range(1, 7)]
+    solid = gd.solve(point_target_scan, GRID, iterations=6, seed=4, ensemble=3,
+                     progress=False, **dict(SMALL, **SOLID))
+    np.testing.assert_array_equal(
+        solid.volume, combine_members([members[s][1].volume for s in (4, 5, 6)], "solid"))
+
+
+def test_parallel_network_members_equal_sequential_ones(point_target_scan):
+    from recon import nbp
+    kw = dict(iterations=3, seed=2, ensemble=2, progress=False, pings_per_iteration=4,
+              bins_per_ping=8, n_rays=64, output="field", hash_levels=4, hash_log2_size=10,
+              mlp_width=16, mlp_hidden=1)
+    apart = nbp.solve(point_target_scan, GRID, **kw)
+    here = nbp.solve(point_target_scan, GRID, parallel_members=False, **kw)
+    assert np.abs(here.volume).max() > 0
+    np.testing.assert_array_equal(apart.volume, here.volume)
+    assert apart.params["ensemble_final_data_loss"] == here.params["ensemble_final_data_loss"]
+
+
+def test_a_failing_member_stops_the_run_with_its_error(point_target_scan, tmp_path):
+    """Member 2's checkpoint is not a checkpoint: its worker's one-line InputError comes
+    back to the caller as itself."""
+    ck = tmp_path / "run.npz"
+    (tmp_path / "run.member2.npz").write_bytes(b"not a checkpoint")
+    with pytest.raises(FormatError, match="member2.npz: not a readable solver checkpoint"):
+        gd.solve(point_target_scan, GRID, iterations=6, seed=4, ensemble=2, progress=False,
+                 checkpoint=ck, resume=True, **SMALL)
+
+
+def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch):
+    import drjit as dr
+    from recon.solver import members as m
+    from sonarsim import limits
+    settings = gd.settings_for(ensemble=3)
+    ds = type("D", (), {})()
+    ds.waveforms = np.zeros((1000, 100), np.float32)      # 400 kB
+    monkeypatch.setattr(m, "available_cores", lambda: 8)
+    threads = dr.thread_count()
+    try:
+        dr.set_thread_count(8)
+        assert m.member_processes(3, settings, GRID, False, ds) == 3
+        assert m.member_processes(1, settings, GRID, False, ds) == 1
+        dr.set_thread_count(2)                             # --threads 2
+        assert m.member_processes(3, settings, GRID, False, ds) == 2
+        dr.set_thread_count(8)
+        nondet = gd.settings_for(ensemble=3, deterministic=False)
+        assert m.member_processes(3, nondet, GRID, False, ds) == 1
+        one = solver.memory_estimate(GRID, settings, False) + ds.waveforms.nbytes
+        limits.set_max_memory(2 * one + 1)
+        assert m.member_processes(3, settings, GRID, False, ds) == 2
+        limits.set_max_memory(None)
+        assert m.member_processes(3, settings, GRID, False, ds, timer=solver.PhaseTimer()) == 1
+    finally:
+        dr.set_thread_count(threads)
+        limits.set_max_memory(None)

@@ -24,8 +24,9 @@ with another identity is refused with a one-line error.
 The package, along its seams: :mod:`.settings` (settings, help, presets), :mod:`.sampling`
 (targets, reachable bins, random draws), :mod:`.voxels` (the voxel scene), :mod:`.priors`
 (data term and priors), :mod:`.autocorrelation` (the matched-filter model),
-:mod:`.profiling`, :mod:`.resources` (ranges and the memory estimate), :mod:`.checkpoints`
-and :mod:`.loop` (fit and solve).
+:mod:`.profiling`, :mod:`.resources` (ranges and the memory estimate), :mod:`.checkpoints`,
+:mod:`.loop` (fit and solve) and :mod:`.members` (ensemble members fitted side by side in
+worker processes, :mod:`.member_worker`).
 """
 from ..adam import Adam  # noqa: F401  (re-exported: recon.solver.Adam)
 from .autocorrelation import convolve_rendered, expand_bins, pulse_autocorrelation  # noqa: F401

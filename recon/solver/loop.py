@@ -17,6 +17,7 @@ from .._jit import jit
 from ..adam import Adam
 from ..grid import Grid
 from .autocorrelation import convolve_rendered, expand_bins, pulse_autocorrelation
+from .members import fit_members, member_processes
 from .checkpoints import check_checkpoint_path, dataset_digest, load_checkpoint, save_checkpoint
 from .priors import in_scene_units, loss_terms, random_directions
 from .profiling import _no_timer
@@ -280,10 +281,30 @@ def combine_members(volumes: list, output: str) -> np.ndarray:
     return (total / len(volumes)).astype(np.complex64)
 
 
+def fit_member(dataset, grid: Grid, out_grid: Grid, settings: SolverSettings, network: bool,
+               sensors, checkpoint, checkpoint_every: int, resume: bool, desc: str,
+               progress: bool = True, callback=None, timer=None) -> tuple:
+    """One fit of an ensemble (or the only one): (volume on ``out_grid`` — a bool solid
+    [nx, ny, nz] for a solid output, else the complex64 field —, run dict with the history,
+    info, scene kind and, for a solid, its voxel counts and cut)."""
+    scene = make_scene(grid, settings, network)
+    params, history, info = fit(dataset, grid, settings, scene, checkpoint=checkpoint,
+                                checkpoint_every=checkpoint_every, resume=resume,
+                                progress=progress, callback=callback, desc=desc, timer=timer)
+    vol = scene.volume(params, out_grid)
+    run = {"history": history, "info": info, "kind": scene.kind}
+    if settings.output == "solid":
+        vol, run["field_occupied_voxels"], run["solid_level"] = solid_volume(
+            vol, settings, sensors, out_grid.bounds)
+        vol = np.abs(vol) > 0.5         # a member's solid kept as bool: 1 byte a voxel
+        run["solid_voxels"] = int(np.count_nonzero(vol))
+    return vol, run
+
+
 def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None = None,
           checkpoint=None, checkpoint_every: int = CHECKPOINT_EVERY, resume: bool = False,
           progress: bool = True, callback=None, export_grid: Grid | None = None, timer=None,
-          **overrides):
+          parallel_members: bool = True, **overrides):
     """Run the solver and return a :class:`~sonarsim.dataset.Volume` (``method``) on ``grid``
     (or the scene sampled on ``export_grid``), with the settings, final loss and info in
     ``params``. ``callback(iteration, record)`` gets each iteration's loss terms.
@@ -292,7 +313,10 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     − 1`` and the members' volumes are combined (:func:`combine_members`); the loss entries
     of ``params`` are the first member's, ``ensemble_*`` lists hold every member's; member k
     checkpoints to :func:`member_checkpoint` (a resumed run skips the finished members);
-    ``callback`` gets every member's iterations in turn."""
+    ``callback`` gets every member's iterations. Deterministic CPU fits run up to
+    :func:`~recon.solver.members.member_processes` members at once in worker processes
+    (the same volumes to the bit; their records then carry ``member`` and arrive
+    interleaved); ``parallel_members=False`` fits them in turn in this process."""
     from sonarsim.dataset import Volume
     settings = settings_for(preset, network=network, **overrides)
     check_resources(grid, settings, network)
@@ -300,24 +324,22 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
     members = int(settings.ensemble)
     sensors = (0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx))
                if settings.output == "solid" else None)
-    volumes, runs = [], []
-    for k in range(members):
-        member = dataclasses.replace(settings, seed=settings.seed + k)
-        scene = make_scene(grid, member, network)
-        desc = method if members == 1 else f"{method} {k + 1}/{members}"
-        params, history, info = fit(dataset, grid, member, scene,
-                                    checkpoint=member_checkpoint(checkpoint, k),
-                                    checkpoint_every=checkpoint_every, resume=resume,
-                                    progress=progress, callback=callback, desc=desc, timer=timer)
-        vol = scene.volume(params, out_grid)
-        run = {"history": history, "info": info, "kind": scene.kind}
-        if settings.output == "solid":
-            vol, run["field_occupied_voxels"], run["solid_level"] = solid_volume(
-                vol, member, sensors, out_grid.bounds)
-            vol = np.abs(vol) > 0.5         # a member's solid kept as bool: 1 byte a voxel
-            run["solid_voxels"] = int(np.count_nonzero(vol))
-        volumes.append(vol)
-        runs.append(run)
+    jobs = [dict(dataset=dataset, grid=grid, out_grid=out_grid,
+                 settings=dataclasses.replace(settings, seed=settings.seed + k),
+                 network=network, sensors=sensors,
+                 checkpoint=member_checkpoint(checkpoint, k), checkpoint_every=checkpoint_every,
+                 resume=resume, desc=method if members == 1 else f"{method} {k + 1}/{members}")
+            for k in range(members)]
+    processes = (member_processes(members, settings, grid, network, dataset, timer)
+                 if parallel_members else 1)
+    if processes > 1:
+        results = fit_members(jobs, processes, progress=progress, callback=callback,
+                              desc=method, iterations=settings.iterations)
+    else:
+        results = [fit_member(**job, progress=progress, callback=callback, timer=timer)
+                   for job in jobs]
+    volumes = [vol for vol, _ in results]
+    runs = [run for _, run in results]
     vol = combine_members(volumes, settings.output)
     first = runs[0]
     history = first["history"]
@@ -346,7 +368,7 @@ def solve(dataset, grid: Grid, *, network: bool, method: str, preset: str | None
 
 # Keywords of solve() that are not settings (checked elsewhere or not at all).
 RUN_KEYWORDS = ("checkpoint", "checkpoint_every", "resume", "progress", "callback",
-                "export_grid", "timer")
+                "export_grid", "timer", "parallel_members")
 
 
 def check_options(grid: Grid, network: bool, preset: str | None = None, **options) -> None:

@@ -146,7 +146,9 @@ HELP = {
     "seed": "random seed (pings, bins, rays, initialisation)",
     "ensemble": "fit the scene this many times, with the seeds seed, seed+1, …, and combine: "
                 "the solid keeps the voxels more than half of the members' solids hold, the "
-                "field output is the members' mean field (each member costs a whole fit)",
+                "field output is the members' mean field (each member costs a whole fit; "
+                "deterministic CPU fits run side by side, as many at once as --threads and "
+                "the memory allow, each in its own process on one core)",
     "lr": "Adam learning rate (× the voxel scale max|scaled BP| if lr_units is relative)",
     "lr_final": "learning rate at the last step, exponential decay from lr (none = constant)",
     "lr_units": "'relative': lr in units of max|scaled backprojection|; 'absolute': parameter units",
