@@ -270,3 +270,5 @@ def _run_command(prog: str, package: str, args: argparse.Namespace) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         _print_err(f"{prog}: error: {where}{exc.strerror or exc}")
         return EXIT_FAILURE
+    finally:
+        limits.set_max_memory(None)  # one command's --max-memory does not outlive it

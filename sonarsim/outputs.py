@@ -36,6 +36,14 @@ def held_here(path: str | os.PathLike) -> bool:
     return _HELD.get(os.path.abspath(os.fspath(path)), 0) > 0
 
 
+def inherit_lock(path: str | os.PathLike) -> None:
+    """Count ``path``'s output lock as held by this process without taking it: for a worker
+    process whose parent holds that lock for the whole run and waits for the worker (the
+    parent's flock would refuse the worker otherwise)."""
+    key = os.path.abspath(os.fspath(path))
+    _HELD[key] = _HELD.get(key, 0) + 1
+
+
 class OutputBusyError(InputError):
     """Another process holds the lock of an output."""
 

@@ -52,9 +52,9 @@ def members(point_target_scan):
     runs = {}
     for seed in (4, 5, 6):
         runs[seed] = (gd.solve(point_target_scan, GRID, iterations=6, seed=seed, progress=False,
-                               **SMALL),
+                               ensemble=1, **SMALL),
                       gd.solve(point_target_scan, GRID, iterations=6, seed=seed, progress=False,
-                               **dict(SMALL, **SOLID)))
+                               ensemble=1, **dict(SMALL, **SOLID)))
     return runs
 
 
@@ -166,3 +166,26 @@ def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch):
     finally:
         dr.set_thread_count(threads)
         limits.set_max_memory(None)
+
+
+def test_command_line_members_side_by_side_write_their_checkpoints(point_target_scan, tmp_path):
+    """`recon gd --ensemble 2 --checkpoint`: the command holds the checkpoint's lock for the
+    whole run, and the worker that fits the first member writes that checkpoint under it
+    (it once failed: "another process is writing this output"); a resumed run reproduces
+    the volume."""
+    import json
+
+    import h5py
+    from recon.cli import main as recon_main
+    data = tmp_path / "d.h5"
+    point_target_scan.write(data)
+    ck = tmp_path / "ck.npz"
+    args = ["gd", str(data), "--bounds", "-0.02", "0.02", "-0.02", "0.02", "0.08", "0.12",
+            "--shape", "9", "9", "9", "--iterations", "4", "--n-rays", "50", "--bins-per-ping",
+            "8", "--ensemble", "2", "--no-progress", "--checkpoint", str(ck)]
+    assert recon_main([*args, "--out", str(tmp_path / "a.h5")]) == 0
+    assert ck.exists() and (tmp_path / "ck.member2.npz").exists()
+    assert recon_main([*args, "--out", str(tmp_path / "b.h5"), "--resume"]) == 0
+    with h5py.File(tmp_path / "a.h5") as a, h5py.File(tmp_path / "b.h5") as b:
+        np.testing.assert_array_equal(a["volume"][()], b["volume"][()])
+        assert json.loads(a.attrs["ensemble_seeds"]) == [0, 1]

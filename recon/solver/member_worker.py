@@ -2,7 +2,8 @@
 
     python -m recon.solver.member_worker VARIANT DATASET.pkl JOB.pkl RESULT.pkl
 
-fits :func:`recon.solver.loop.fit_member` with the pickled dataset and keywords, prints one
+fits :func:`recon.solver.loop.fit_member` with the pickled dataset and keywords (JOB.pkl: the
+keywords and the output locks the parent holds for this worker), prints one
 ``member-report [iteration, record]`` line per iteration on stdout and pickles (volume, run)
 — or the error — to RESULT.pkl (atomically: a file there is a whole outcome).
 """
@@ -31,7 +32,10 @@ def main(argv: list[str]) -> int:
         with open(data_path, "rb") as f:
             dataset = pickle.load(f)
         with open(job_path, "rb") as f:
-            job = pickle.load(f)
+            job, locks = pickle.load(f)
+        from sonarsim import outputs
+        for path in locks:            # held by the parent for this worker
+            outputs.inherit_lock(path)
         outcome = fit_member(dataset=dataset, **job, progress=False, callback=report)
         status = 0
     except KeyboardInterrupt:        # Ctrl-C reaches the whole process group: the parent reports it

@@ -25,7 +25,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-from sonarsim import limits
+from sonarsim import limits, outputs
 from sonarsim.errors import SonarsimError
 from sonarsim.progress import progress_bar
 
@@ -86,8 +86,12 @@ def fit_members(jobs: list[dict], processes: int, *, progress: bool, callback, d
         with open(data, "wb") as f:
             pickle.dump(jobs[0]["dataset"], f, protocol=pickle.HIGHEST_PROTOCOL)
         for k, job in enumerate(jobs):
+            # a checkpoint whose lock this process holds (the command's --checkpoint) is
+            # written by the worker under that lock: the worker inherits it
+            ck = job.get("checkpoint")
+            locks = [str(ck)] if ck is not None and outputs.held_here(ck) else []
             with open(tmp / f"job{k}.pkl", "wb") as f:
-                pickle.dump({key: v for key, v in job.items() if key != "dataset"}, f,
+                pickle.dump(({key: v for key, v in job.items() if key != "dataset"}, locks), f,
                             protocol=pickle.HIGHEST_PROTOCOL)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
         waiting, finished = list(range(len(jobs))), {}
