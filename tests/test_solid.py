@@ -83,6 +83,34 @@ def test_floaters_are_dropped_and_big_objects_kept():
     assert not solid.solidify(_as_field(mask), min_fraction=0.3)[31:38, 31:38, 2:9].any()
 
 
+def test_separate_parts_above_the_ground_are_kept_floaters_on_it_dropped():
+    """Step 2's part rule on 1 cm voxels (box 0.39 m, lowest plane z = 0): a shell (2 920
+    voxels) and three 48-voxel blocks, 1.6 % of it: one whose top is 30 cm up (kept with
+    part_volume 40 cm³ and part_height 5 cm), one lying on the ground, top 3 cm (dropped: a
+    floater's place), one up high but of 27 voxels (dropped: too small)."""
+    shell, _, _ = _shell(centre=(20, 20, 20), r=10.0)
+    mask = shell.copy()
+    mask[2:6, 2:6, 27:30] = True               # 48 voxels, top z index 29
+    mask[33:37, 33:37, 0:3] = True             # 48 voxels on the ground, top z index 2
+    mask[2:5, 33:36, 30:33] = True             # 27 voxels, high up
+    bounds = np.array([[0.0, 0.39]] * 3)       # spacing 1 cm
+    kw = dict(min_fraction=0.1, close=0, bounds=bounds, part_height=0.05)
+    out = solid.solidify(_as_field(mask), part_volume=40e-6, **kw)
+    assert out[2:6, 2:6, 27:30].all() and out[20, 20, 20]
+    assert not out[33:37, 33:37, 0:3].any()
+    assert not out[2:5, 33:36, 30:33].any()
+    # off (part_volume 0), the 10 % rule drops all three; a lower height keeps the grounded one
+    off = solid.solidify(_as_field(mask), part_volume=0.0, **kw)
+    assert not off[2:6, 2:6, 27:30].any() and not off[33:37, 33:37, 0:3].any()
+    low = solid.solidify(_as_field(mask), part_volume=40e-6, **dict(kw, part_height=0.02))
+    assert low[33:37, 33:37, 0:3].all()
+    assert solid.part_rule(40e-6, 0.05, np.array([0.01, 0.01, 0.01])) == (40, 5)
+    with pytest.raises(InputError, match="part_volume > 0 needs the bounds"):
+        solid.solidify(_as_field(mask), part_volume=40e-6)
+    with pytest.raises(InputError, match="part_height"):
+        solid.solidify(_as_field(mask), part_volume=40e-6, bounds=bounds, part_height=-1.0)
+
+
 def test_threshold_is_on_the_min_max_normalised_magnitude():
     shell = _shell()[0]
     field = _as_field(shell, level=1.0)

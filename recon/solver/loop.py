@@ -227,7 +227,9 @@ def solid_volume(field: np.ndarray, settings: SolverSettings, sensors: np.ndarra
                               cavity_floor=float(settings.solid_cavity_floor),
                               blur=float(settings.solid_blur),
                               threshold_mode=settings.solid_threshold_mode,
-                              smooth=float(settings.solid_smooth))
+                              smooth=float(settings.solid_smooth),
+                              part_volume=float(settings.solid_part_volume),
+                              part_height=float(settings.solid_part_height))
     above, level = solid.step_one(field, settings.solid_threshold, float(settings.solid_blur),
                                   settings.solid_threshold_mode)
     return occupied.astype(np.complex64), int(np.count_nonzero(above)), level
