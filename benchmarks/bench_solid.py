@@ -84,7 +84,7 @@ def main():
     scan = sensors()
     voxels = int(np.prod(shape))
     common = dict(min_fraction=0.1, close=3, floor=True, hidden=256, sensors=scan, bounds=BOUNDS,
-                  cavity_floor=0.02)
+                  cavity_floor=0.02, part_volume=1.5e-6, part_height=0.05)
     rules = {"nbp": dict(threshold=0.3, quorum=0.8, smooth=1.0),
              "gd": dict(threshold=1.7, threshold_mode="otsu", blur=0.7, quorum=1.0, smooth=1.0)}
     print(f"field {shape} = {voxels / 1e6:.2f} M voxels, {len(scan)} sensors, median of {args.repeats}")
