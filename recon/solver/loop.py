@@ -17,8 +17,8 @@ from .._jit import jit
 from ..adam import Adam
 from ..grid import Grid
 from .autocorrelation import convolve_rendered, expand_bins, pulse_autocorrelation
-from .members import fit_members, member_processes
 from .checkpoints import check_checkpoint_path, dataset_digest, load_checkpoint, save_checkpoint
+from .members import fit_members, member_processes
 from .priors import in_scene_units, loss_terms, random_directions
 from .profiling import _no_timer
 from .resources import check_resources
