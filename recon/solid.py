@@ -63,9 +63,10 @@ filled; a thin plate or a single surface stays what it is (it encloses nothing);
 whose *base* is open and stands on the ground (a dome, a cup upside down) is filled, as
 ``floor=True`` says it is closed by the ground; an object smaller than ``min_fraction`` of the
 largest one in the box is dropped with the floaters unless it passes step 2's ``part_volume``
-and ``part_height`` (an object lying flat on the ground, under ``part_height``, does not). With step 5 and ``quorum`` q < 1, an
-opening seen by fewer than a fraction 1 − q of the sensors is closed too (the lower hole of
-a torus lying on the ground, for the Table-2 scan and q = 0.8). Tests: tests/test_solid.py.
+and ``part_height`` (an object lying flat on the ground, under ``part_height``, does not).
+With step 5 and ``quorum`` q < 1, an opening seen by fewer than a fraction 1 − q of the
+sensors is closed too (the lower hole of a torus lying on the ground, for the Table-2 scan
+and q = 0.8). Tests: tests/test_solid.py.
 """
 from __future__ import annotations
 
@@ -166,8 +167,10 @@ def part_rule(part_volume: float, part_height: float, spacing) -> tuple[int, int
     """Step 2's (min_voxels, min_top) for parts of ``part_volume`` m³ reaching ``part_height``
     m above the lowest plane, on voxels of ``spacing`` [3] m (0, 0: off, also on a grid one
     voxel thick along an axis, whose voxels have no volume)."""
+    if not part_volume > 0:
+        return 0, 0
     voxel = float(np.prod(spacing))
-    if not (part_volume > 0 and voxel > 0):
+    if not voxel > 0:
         return 0, 0
     return (max(1, int(np.ceil(part_volume / voxel - 1e-9))),
             int(np.ceil(part_height / spacing[2] - 1e-9)))
@@ -377,8 +380,7 @@ def solidify(volume: np.ndarray, threshold: float = DEFAULTS["threshold"],
         spacing = (bounds[:, 1] - bounds[:, 0]) / np.maximum(n - 1, 1)
     occupied = thresholded(volume, threshold, blur, threshold_mode)
     occupied = drop_small_components(occupied, min_fraction,
-                                     *part_rule(part_volume, part_height, spacing)
-                                     if part_volume > 0 else (0, 0))
+                                     *part_rule(part_volume, part_height, spacing))
     data = close_gaps(occupied, int(close))
     occupied = fill_enclosed(data, bool(floor))
     if int(hidden) <= 0 and not cavity_floor > 0:
