@@ -713,9 +713,30 @@ def write_markdown(path: Path, results, methods, summary: str, notes: list[str])
                          f"{fmt(r.get('measured_snr_db'), '.1f')} | "
                          f"{fmt(e.get('chamfer_sq'), '.2e')} | {fmt(e.get('iou'), '.4f')} | "
                          f"{fmt(e.get('psnr_depth'), '.2f')} |")
+    lines += cost_lines(results)
     if notes:
         lines += ["", "Notes:", ""] + [f"* {n}" for n in sorted(set(notes))]
     path.write_text("\n".join(lines) + "\n")
+
+
+def cost_lines(results: list[dict]) -> list[str]:
+    """The table's cost section: each stage summed over the cells as they recorded it (wall and
+    CPU seconds; a job's simulation once), so a resumed run that recomputes nothing writes the
+    same table. A run's own wall time, which depends on what it found done, is in
+    ``table2.json`` (``total_s``) and on stdout."""
+    wall, missing = stage_sums(results, "stages_s")
+    cpu, _ = stage_sums(results, "stages_cpu_s")
+    if not wall:
+        return []
+    lines = ["", "## Cost (each stage summed over the cells, as recorded when they ran)", "",
+             "| stage | wall (s) | CPU, user + sys (s) |", "|---|---|---|"]
+    for key, seconds in wall.items():
+        lines.append(f"| {key[:-2]} | {seconds:.0f} | {fmt(cpu.get(key), '.0f')} |")
+    lines.append(f"| all stages | {sum(wall.values()):.0f} | {sum(cpu.values()):.0f} |")
+    lines += ["", "Cells run side by side (`--workers`) overlap, so a run's wall time is below the "
+              "summed wall; simulations are counted once per dataset."
+              + (f" Not recorded by some cells: {', '.join(missing)}." if missing else "")]
+    return lines
 
 
 CSV_KEYS = ("iou", "best_iou", "best_iou_threshold", "mesh_iou", "chamfer_sq", "chamfer_m",

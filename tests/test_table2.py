@@ -156,6 +156,13 @@ def test_markdown_means_and_published_rows(quick_run, table2):
             assert parts[3] == f"{np.mean([c['reference']['iou'] for c in sel]):.4f}"
             assert parts[2] == f"{np.mean([c['reference']['chamfer_sq'] for c in sel]):.2e}"
             assert parts[4] == "n/a"        # LPIPS is not computed
+    # the cost section: each stage summed over the cells as recorded, a simulation once
+    cost = text.split("## Cost")[1].split("\n\n")[1]
+    solve = next(line for line in cost.splitlines() if line.startswith("| solve |"))
+    assert solve.split("|")[2].strip() == f"{sum(c['stages_s']['solve_s'] for c in cells):.0f}"
+    dataset = next(line for line in cost.splitlines() if line.startswith("| dataset |"))
+    runs = {c["job"]: c["stages_s"]["dataset_s"] for c in cells}
+    assert dataset.split("|")[2].strip() == f"{sum(runs.values()):.0f}"
     with open(quick_run / "table2.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert len([r for r in rows if r["source"] == "ours"]) == 2 * len(cells)

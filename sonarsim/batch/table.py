@@ -69,8 +69,11 @@ class BatchTable:
         old = self.previous.get(job.job_id, {})
         row["status"], row["error"] = status, error
         row["wall_s"] = sim_wall if sim_wall is not None else (old.get("wall_s") or None)
-        if sim_wall is None and old.get("notes"):
-            row["notes"] = old["notes"]
+        if sim_wall is None:    # not simulated by this run: keep what the run that did measured
+            if old.get("notes"):
+                row["notes"] = old["notes"]
+            if old.get("cpu_s") and "cpu_s" not in (sim or {}):
+                sim = {**(sim or {}), "cpu_s": float(old["cpu_s"])}
         for key, value in (sim or {}).items():
             if key == "notes":
                 row["notes"] = value
