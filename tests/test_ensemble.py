@@ -140,13 +140,13 @@ def test_a_failing_member_stops_the_run_with_its_error(point_target_scan, tmp_pa
                  checkpoint=ck, resume=True, **SMALL)
 
 
-def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch):
+def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch,
+                                                                  point_target_scan):
     import drjit as dr
     from recon.solver import members as m
     from sonarsim import limits
     settings = gd.settings_for(ensemble=3)
-    ds = type("D", (), {})()
-    ds.waveforms = np.zeros((1000, 100), np.float32)      # 400 kB
+    ds = point_target_scan
     monkeypatch.setattr(m, "available_cores", lambda: 8)
     threads = dr.thread_count()
     try:
@@ -158,9 +158,11 @@ def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch):
         dr.set_thread_count(8)
         nondet = gd.settings_for(ensemble=3, deterministic=False)
         assert m.member_processes(3, nondet, GRID, False, ds) == 1
-        one = solver.memory_estimate(GRID, settings, False) + ds.waveforms.nbytes
+        one = solver.memory_estimate(GRID, settings, False) + ds.nbytes()  # a worker's copy
         limits.set_max_memory(2 * one + 1)
         assert m.member_processes(3, settings, GRID, False, ds) == 2
+        limits.set_max_memory(2 * one - 1)               # two estimates fit, two datasets not
+        assert m.member_processes(3, settings, GRID, False, ds) == 1
         limits.set_max_memory(None)
         assert m.member_processes(3, settings, GRID, False, ds, timer=solver.PhaseTimer()) == 1
     finally:

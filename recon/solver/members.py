@@ -57,14 +57,9 @@ def member_processes(members: int, settings, grid, network: bool, dataset, timer
     count = min(members, available_cores(), int(dr.thread_count()))
     limit, _ = limits.memory_limit()
     if limit is not None:
-        per_worker = memory_estimate(grid, settings, network) + dataset_bytes(dataset)
+        per_worker = memory_estimate(grid, settings, network) + dataset.nbytes()
         count = min(count, max(1, limit // max(per_worker, 1)))
     return max(1, int(count))
-
-
-def dataset_bytes(dataset) -> int:
-    """Bytes of the dataset's arrays (what a worker's copy costs)."""
-    return sum(int(getattr(v, "nbytes", 0) or 0) for v in vars(dataset).values())
 
 
 def fit_members(jobs: list[dict], processes: int, *, progress: bool, callback, desc: str,
