@@ -10,7 +10,6 @@ keywords and the output locks the parent holds for this worker), prints one
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import sys
 
@@ -49,10 +48,9 @@ def main(argv: list[str]) -> int:
         payload = pickle.dumps(SonarsimError(f"{type(outcome).__name__}: {outcome}"
                                              if status else f"result not picklable: {exc}"))
         status = 1
-    tmp = result_path + ".part"
-    with open(tmp, "wb") as f:
-        f.write(payload)
-    os.replace(tmp, result_path)
+    from sonarsim.atomic import atomic_path
+    with atomic_path(result_path) as tmp:
+        tmp.write_bytes(payload)
     return status
 
 
