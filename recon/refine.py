@@ -293,6 +293,42 @@ def range_resolution(pulse: np.ndarray, fs: float, sound_speed: float) -> float:
     return float(sound_speed) / (2.0 * bandwidth)
 
 
+def smooth_vertices(vertices: np.ndarray, faces: np.ndarray, lam: float) -> np.ndarray:
+    """float64 [V, 3]: implicit Laplacian smoothing, (I + ``lam`` L)⁻¹ v, with L the
+    combinatorial (graph) Laplacian of the mesh's edges — the operator whose differential
+    form LargeSteps optimises in, applied once to the positions. A bump of wavelength w on a
+    mesh of edge h is damped by about 1 / (1 + lam · (2πh/w)²), so features a few edges wide
+    fade and large ones stay; the vertex centroid is kept exactly (L's rows sum to zero), a
+    convex body shrinks a little (its surface moves inward by about lam · h² × the mean
+    curvature). ``lam`` = 0: a copy."""
+    from scipy.sparse import coo_matrix, diags, identity
+    from scipy.sparse.linalg import spsolve
+    v = np.asarray(vertices, np.float64)
+    if not (np.isfinite(lam) and lam >= 0):
+        raise InputError(f"start smoothing: lambda must be >= 0, got {lam}")
+    if lam == 0 or len(v) == 0:
+        return v.copy()
+    f = np.asarray(faces, np.int64)
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1),
+                      axis=0)
+    n = len(v)
+    adjacency = coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]],
+                                                      np.r_[edges[:, 1], edges[:, 0]])),
+                           shape=(n, n)).tocsr()
+    laplacian = diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    return np.asarray(spsolve((identity(n) + lam * laplacian).tocsc(), v), np.float64)
+
+
+def smoothed_start(mesh: trimesh.Trimesh, lam: float, edge_length: float) -> trimesh.Trimesh:
+    """The start ``mesh`` remeshed to ``edge_length`` (:func:`remesh`, as :func:`solve` does)
+    and smoothed by :func:`smooth_vertices` with ``lam``: roughness a few edges wide, which the
+    envelopes cannot resolve (it is below the range resolution) and the fit therefore does not
+    remove, is taken out before the fit (docs/refine.md "Smoothed starts")."""
+    import trimesh
+    v, f = remesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), edge_length)
+    return trimesh.Trimesh(smooth_vertices(v, f, lam), f, process=False)
+
+
 def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
     """The connected components of ``mesh`` with ≥ ``min_fraction`` × the largest's faces."""
     import trimesh

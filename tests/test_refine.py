@@ -491,7 +491,8 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
            "test").write(tmp_path / "shell.h5")
     out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
-                 "--wrap", "0,1", "--no-ground", "--envelope-steps", "1", "--waveform-steps", "2",
+                 "--wrap", "0,1", "--smooth", "0", "--no-ground", "--envelope-steps", "1",
+                 "--waveform-steps", "2",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
                  "--keep-candidates", "--no-progress"]) == 0
     record = json.loads(hist.read_text())
@@ -661,3 +662,95 @@ def test_grow_beyond_adds_the_far_structure_and_its_bridge_not_the_hugging_layer
     assert added[13:16, 13:16, 15:30].all()             # the whole ear, its base included
     assert not added[8:10, 8:22, 5:15].any() and not added[20:22, 8:22, 5:15].any()   # no layer
     assert added.sum() < 1.3 * 3 * 3 * 15
+
+
+# ------------------------------------------------------------------ smoothed starts
+
+def _grid_mesh(n: int, h: float):
+    """A flat square grid of n × n vertices (spacing h) split along one diagonal: every interior
+    vertex has the six neighbours (i±1, j), (i, j±1), (i+1, j+1), (i−1, j−1)."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    v = np.stack([i.ravel() * h, j.ravel() * h, np.zeros(n * n)], axis=1)
+    idx = (i * n + j)[:-1, :-1].ravel()
+    faces = np.concatenate([np.stack([idx, idx + n, idx + n + 1], 1),
+                            np.stack([idx, idx + n + 1, idx + 1], 1)])
+    return v, faces, i, j
+
+
+def test_smoothing_damps_the_checkerboard_by_its_closed_form_and_keeps_the_centroid():
+    """On the six-neighbour grid the checkerboard z = ε(−1)^(i+j) is an eigenvector of the graph
+    Laplacian with eigenvalue 8 (6 z minus 4 opposite and 2 equal neighbours), so (I + λL)⁻¹
+    scales it by 1 / (1 + 8λ) away from the border; a plane stays where it is and the vertex
+    centroid is kept exactly."""
+    v, f, i, j = _grid_mesh(71, 0.008)
+    eps = 1e-3
+    v[:, 2] = 0.05 + eps * (-1.0) ** (i + j).ravel()
+    for lam in (0.25, 1.0, 3.0):
+        out = refine.smooth_vertices(v, f, lam)
+        inner = ((i > 20) & (i < 50) & (j > 20) & (j < 50)).ravel()
+        np.testing.assert_allclose((out[inner, 2] - 0.05) / (v[inner, 2] - 0.05), 1 / (1 + 8 * lam),
+                                   rtol=1e-3)   # the border's effect has decayed
+        np.testing.assert_allclose(out.mean(axis=0), v.mean(axis=0), atol=1e-12)
+    flat = v.copy()
+    flat[:, 2] = 0.05
+    np.testing.assert_allclose(refine.smooth_vertices(flat, f, 2.0)[:, 2], 0.05, atol=1e-12)
+    np.testing.assert_array_equal(refine.smooth_vertices(v, f, 0.0), v)
+    from sonarsim.errors import InputError
+    with pytest.raises(InputError, match="lambda must be >= 0"):
+        refine.smooth_vertices(v, f, -1.0)
+
+
+def test_smoothing_takes_bumps_a_few_edges_wide_off_a_sphere():
+    """Bumps of ±1 mm about two edges wide on an icosphere of radius 3 cm (edge 2.4 mm):
+    smoothing is linear, so what is left of them is the smoothed bumpy sphere minus the
+    smoothed plain one; at λ = 1 less than half of their spread remains, while the plain
+    sphere only shrinks (its radius by λ·Lr, about 0.6 mm here) and stays round. The
+    remeshed-and-smoothed start is a closed surface with edges near the target."""
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.03)
+    u = ball.vertices / np.linalg.norm(ball.vertices, axis=1, keepdims=True)
+    rng = np.random.default_rng(1)
+    centres = rng.normal(size=(80, 3))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    bumps = (rng.choice([-1.0, 1.0], 80) * np.exp(-((u @ centres.T - 1) / 0.003) ** 2)).sum(axis=1)
+    bumps *= 0.001 / np.abs(bumps).max()
+    plain = refine.smooth_vertices(ball.vertices, ball.faces, 1.0)
+    rough = refine.smooth_vertices(ball.vertices + u * bumps[:, None], ball.faces, 1.0)
+    left = np.einsum("ij,ij->i", rough - plain, u)
+    assert left.std() < bumps.std() / 2
+    r = np.linalg.norm(plain, axis=1)
+    assert 0.0290 < r.mean() < 0.0298 and r.std() < 0.1 * (0.03 - r.mean())
+    start = refine.smoothed_start(trimesh.Trimesh(ball.vertices + u * bumps[:, None], ball.faces),
+                                  1.0, 0.006)
+    assert start.is_watertight
+    assert 0.004 < np.median(start.edges_unique_length) < 0.008
+
+
+def test_refine_command_adds_the_smoothed_start_as_a_candidate(ball_scan, tmp_path, capsys):
+    """--smooth L adds one candidate per level (the unwrapped start smoothed), ranked with the
+    others by the envelope misfit; --keep-candidates writes it as OUT.smoothL(.start).ply; the
+    levels 0 and repeats add nothing; a bad level is refused before any work."""
+    import json
+    from recon.cli import main
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.033)
+    ball.vertices += [0.0, 0.0, 0.06]
+    ball.export(tmp_path / "start.ply")
+    out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
+    args = ["refine", str(ball_scan), "--init", str(tmp_path / "start.ply"), "--out", str(out),
+            "--no-ground", "--envelope-steps", "1", "--waveform-steps", "1", "--pings", "::2",
+            "--edge-length", "0.01", "--history", str(hist), "--no-progress"]
+    assert main([*args, "--smooth", "0,2,2", "--keep-candidates"]) == 0
+    record = json.loads(hist.read_text())
+    cands = record["candidates"]
+    assert [(c["wrap"], c["smooth"]) for c in cands] == [(0.0, 0.0), (0.0, 2.0)]
+    best = min(cands, key=lambda c: c["envelope_misfit"])
+    assert record["smooth"] == best["smooth"] and len(trimesh.load(out).faces) == best["faces"]
+    plain = trimesh.load(tmp_path / "refined.wrap0.start.ply")
+    smoothed = trimesh.load(tmp_path / "refined.smooth2.start.ply")
+    assert (np.linalg.norm(smoothed.vertices - [0, 0, 0.06], axis=1).mean()
+            < np.linalg.norm(plain.vertices - [0, 0, 0.06], axis=1).mean())   # λL shrinks a ball
+    assert (tmp_path / "refined.smooth2.ply").is_file()
+    capsys.readouterr()
+    for bad, words in (("x", "--smooth: expected L[,L...]"), ("-1", "--smooth: must be >= 0")):
+        assert main([*args, "--force", "--smooth", bad]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

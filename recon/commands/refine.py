@@ -16,6 +16,7 @@ OUTPUTS = ("out", "history")
 OUTPUT_SUFFIXES = {"history": (".json",)}
 GROW_THRESHOLD = 0.2           # --grow-threshold's default
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
+DEFAULT_SMOOTH = "1"       # and the unwrapped start smoothed once more (docs/refine.md "Smoothed starts")
 
 OPTION_HELP = {
     "envelope_steps": "steps of stage 1 (matched-filter envelopes)",
@@ -61,6 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "each start and keep the result with the lowest envelope misfit (the "
                              "envelope stage's last pass; without that stage the final misfit) "
                              f"(default {DEFAULT_WRAP} for a volume, 0 for a mesh; docs/refine.md)")
+    parser.add_argument("--smooth", default=DEFAULT_SMOOTH, metavar="L[,L...]",
+                        help="also refine from the unwrapped start (the volume's iso-surface, or "
+                             "the --init mesh) remeshed and smoothed by (I + L lap)^-1 (the "
+                             "graph Laplacian, L in units of the squared --edge-length): "
+                             "roughness a few edges wide, below the range resolution, that the "
+                             "fit does not remove; one candidate per L, ranked with the --wrap "
+                             f"starts by the envelope misfit; 0: none (default {DEFAULT_SMOOTH}; "
+                             "docs/refine.md 'Smoothed starts')")
     parser.add_argument("--grow", type=Path, default=None, metavar="VOLUME",
                         help="volume --init: a second volume of the same scan on the same grid "
                              "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
@@ -76,8 +85,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the layer hugging it (default 0: every touching part)")
     parser.add_argument("--keep-candidates", action="store_true",
                         help="also write each start and its refinement next to --out, named "
-                             "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT (e.g. to score every "
-                             "--wrap candidate)")
+                             "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT, or "
+                             "OUT_STEM.smoothL.start.EXT and OUT_STEM.smoothL.EXT (e.g. to score "
+                             "every candidate)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
@@ -107,15 +117,56 @@ def settings_from_args(args):
     return settings
 
 
-def wrap_factors(text: str) -> list[float]:
-    """The ``--wrap`` values: one or more comma-separated factors >= 0."""
+def wrap_factors(text: str, option: str = "--wrap", name: str = "K") -> list[float]:
+    """The ``--wrap`` (or ``--smooth``) values: one or more comma-separated numbers >= 0."""
     try:
         values = [float(v) for v in str(text).split(",")]
     except ValueError:
-        raise InputError(f"--wrap: expected K[,K...] with numbers >= 0, got {text!r}") from None
+        raise InputError(f"{option}: expected {name}[,{name}...] with numbers >= 0, "
+                         f"got {text!r}") from None
     if not all(0 <= v < float("inf") for v in values):
-        raise InputError(f"--wrap: must be >= 0, got {text}")
+        raise InputError(f"{option}: must be >= 0, got {text}")
     return values
+
+
+def smoothing_levels(text: str) -> list[float]:
+    """The ``--smooth`` levels that add a candidate (those > 0, each once, in order)."""
+    levels = []
+    for v in wrap_factors(text, "--smooth", "L"):
+        if v > 0 and v not in levels:
+            levels.append(v)
+    return levels
+
+
+def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> list[dict]:
+    """The starts to refine: ``specs`` (:func:`candidate_specs`) each with its ``"mesh"``: the
+    :func:`initial_meshes` for ``smooth`` 0, and for a level L > 0 the unwrapped start smoothed
+    by :func:`recon.refine.smoothed_start`."""
+    from ..refine import smoothed_start
+    starts = dict(initial_meshes(args, dataset))
+    out = []
+    for spec in specs:
+        if not spec["smooth"]:
+            out.append({**spec, "mesh": starts[spec["wrap"]]})
+            continue
+        if 0.0 not in starts:                    # --wrap without 0: the unwrapped start anyway
+            starts.update(initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}),
+                                         dataset))
+        out.append({**spec, "mesh": smoothed_start(starts[0.0], spec["smooth"], edge_length)})
+    return out
+
+
+def candidate_specs(args) -> list[dict]:
+    """``[{"wrap": K, "smooth": L}]``, the candidates ``--wrap``, ``--smooth`` and ``--init``
+    ask for, before any mesh is made (so that bad values and existing outputs are refused
+    first): the wrap factors (0 for a mesh), then one unwrapped start per smoothing level."""
+    levels = smoothing_levels(args.smooth)
+    if args.init.suffix.lower() == ".h5":
+        factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
+    else:
+        factors = [0.0]
+    return ([{"wrap": k, "smooth": 0.0} for k in dict.fromkeys(factors)]
+            + [{"wrap": 0.0, "smooth": lam} for lam in levels])
 
 
 def initial_meshes(args, dataset) -> list[tuple[float, object]]:
@@ -177,9 +228,16 @@ def choose_candidate(candidates: list[dict]) -> int:
     return min(range(len(candidates)), key=lambda i: selection_misfit(candidates[i]))
 
 
-def candidate_paths(out: Path, k: float) -> tuple[Path, Path]:
-    """(start, refined) mesh paths of the ``--wrap k`` candidate for ``--keep-candidates``."""
-    stem = f"{out.stem}.wrap{k:g}"
+def candidate_label(candidate: dict) -> str:
+    """``wrapK`` or ``smoothL``: a candidate's name in file names and messages."""
+    if candidate.get("smooth", 0):
+        return f"smooth{candidate['smooth']:g}"
+    return f"wrap{candidate['wrap']:g}"
+
+
+def candidate_paths(out: Path, candidate: dict) -> tuple[Path, Path]:
+    """(start, refined) mesh paths of a candidate for ``--keep-candidates``."""
+    stem = f"{out.stem}.{candidate_label(candidate)}"
     return out.with_name(f"{stem}.start{out.suffix}"), out.with_name(f"{stem}{out.suffix}")
 
 
@@ -191,53 +249,57 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
     ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None),
                               refuse_silence="there is nothing to fit")
-    starts = initial_meshes(args, ds)
-    from ..checks import check_box_sees_data
-    for k, init in starts:
-        check_box_sees_data(ds, *init.bounds, f"--init {args.init}: no part of the start mesh",
-                            "is it in metres and in the dataset's frame? (nothing to fit)")
+    specs = candidate_specs(args)
     if args.keep_candidates:
         from sonarsim.outputs import check_output
         named = {Path(args.out).resolve()} | ({Path(args.history).resolve()}
                                               if args.history is not None else set())
-        for k, _ in starts:
-            for path in candidate_paths(args.out, k):
+        for spec in specs:
+            for path in candidate_paths(args.out, spec):
                 if path.resolve() in named:
                     raise InputError(f"--keep-candidates: {path} is also another output")
                 check_output(path, force=bool(getattr(args, "force", False)),
                              option="--keep-candidates")
+    starts = start_candidates(args, ds, settings.edge_length, specs)
+    from ..checks import check_box_sees_data
+    for start in starts:
+        check_box_sees_data(ds, *start["mesh"].bounds, f"--init {args.init}: no part of the start mesh",
+                            "is it in metres and in the dataset's frame? (nothing to fit)")
     index = _common.parse_slice(args.pings, ds.n_pings)
     candidates, results = [], []
-    for k, init in starts:
+    for start in starts:
+        init, name = start["mesh"], candidate_label(start)
         if len(starts) > 1:
-            print(f"start --wrap {k:g}: {len(init.faces)} faces")
+            print(f"start {name}: {len(init.faces)} faces")
         res = solve(ds, init, settings, ping_index=index,
                     ground=None if args.no_ground else "dataset",
                     progress=not args.no_progress, log=print)
-        candidates.append({"wrap": k, "final_misfit": res.final_misfit, "faces": len(res.faces),
+        candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
+                           "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
                            "albedo": res.albedo})
         if args.keep_candidates:           # after the fit: a failed one leaves no files
-            start_path, refined_path = candidate_paths(args.out, k)
+            start_path, refined_path = candidate_paths(args.out, start)
             write_mesh(start_path, init)
             write_mesh(refined_path, res.mesh)
         results.append(res)
         if len(starts) > 1:
             env = candidates[-1]["envelope_misfit"]
-            print(f"start --wrap {k:g}: envelope misfit "
+            print(f"start {name}: envelope misfit "
                   f"{'-' if env is None else format(env, '.4f')}, final misfit {res.final_misfit:.4f}")
     best = choose_candidate(candidates)
-    result, chosen = results[best], candidates[best]["wrap"]
+    result, chosen = results[best], candidates[best]
     write_mesh(args.out, result.mesh)
     if args.history is not None:
         from sonarsim.atomic import atomic_path
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
-                                       "wrap": chosen, "candidates": candidates,
+                                       "wrap": chosen["wrap"], "smooth": chosen["smooth"],
+                                       "candidates": candidates,
                                        "history": result.history}, indent=1, default=str))
     last = result.history[-1]
     albedo = "" if result.albedo is None else f", albedo {result.albedo:.3f} of the ground's"
-    picked = f" (from the start --wrap {chosen:g})" if len(starts) > 1 else ""
+    picked = f" (from the start {candidate_label(chosen)})" if len(starts) > 1 else ""
     print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps{picked}; "
           f"final {last['stage']} loss {last['loss']:.4f}, final misfit {result.final_misfit:.4f}"
           f"{albedo}")
