@@ -64,8 +64,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default {DEFAULT_WRAP} for a volume, 0 for a mesh; docs/refine.md)")
     parser.add_argument("--smooth", default=DEFAULT_SMOOTH, metavar="L[,L...]",
                         help="also refine from the unwrapped start (the volume's iso-surface, or "
-                             "the --init mesh) remeshed and smoothed by (I + L lap)^-1 (the "
-                             "graph Laplacian, L in units of the squared --edge-length): "
+                             "the --init mesh) remeshed and smoothed by (I + L lap)^-1 (lap: the "
+                             "graph Laplacian of its edges; it reaches about sqrt(2L) edges): "
                              "roughness a few edges wide, below the range resolution, that the "
                              "fit does not remove; one candidate per L, ranked with the --wrap "
                              f"starts by the envelope misfit; 0: none (default {DEFAULT_SMOOTH}; "
