@@ -32,6 +32,9 @@ the rendered waveforms match the dataset's:
   by the connected parts of a second volume of the same scan (its backprojection): thin
   parts that NBP misses but the data images; the support stage then prunes what the data
   does not support.
+* **Smoothed start** (:func:`smoothed_start`): the start remeshed and smoothed once by
+  (I + λL)⁻¹, which takes off roughness below the range resolution that the envelopes do not
+  see; ``recon refine`` refines it beside the wrapped starts and the data keep one.
 * **Pings.** The chosen pings are split into interleaved batches (each spans the aperture);
   one batch per step.
 
@@ -299,8 +302,8 @@ def smooth_vertices(vertices: np.ndarray, faces: np.ndarray, lam: float) -> np.n
     form LargeSteps optimises in, applied once to the positions. A bump of wavelength w on a
     mesh of edge h is damped by about 1 / (1 + lam · (2πh/w)²), so features a few edges wide
     fade and large ones stay; the vertex centroid is kept exactly (L's rows sum to zero), a
-    convex body shrinks a little (its surface moves inward by about lam · h² × the mean
-    curvature). ``lam`` = 0: a copy."""
+    convex body shrinks a little (its surface moves inward by about 3 · lam · h² · H, H the
+    mean curvature: 3 · lam · h² / R for a sphere of radius R). ``lam`` = 0: a copy."""
     from scipy.sparse import coo_matrix, diags, identity
     from scipy.sparse.linalg import spsolve
     v = np.asarray(vertices, np.float64)
