@@ -754,3 +754,32 @@ def test_refine_command_adds_the_smoothed_start_as_a_candidate(ball_scan, tmp_pa
         assert main([*args, "--force", "--smooth", bad]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("inflate, smoothed_wins", [(0.004, True), (0.0, False)],
+                         ids=["rough-and-inflated", "rough-only"])
+def test_the_envelope_misfit_keeps_the_smoothed_start_when_it_is_closer(mi, ball_scan, inflate,
+                                                                         smoothed_wins):
+    """A real refinement from a rough sphere (narrow bumps up to 3 mm) and from its smoothed
+    start (λ = 1, which also shrinks it by ~3 mm): when the rough start is 4 mm too large, the
+    smoothed one ends closer to the scanned sphere and has the lower envelope misfit; when the
+    rough start has the right size, the smoothed one (now too small) ends farther and has the
+    higher misfit — the ranking follows the truth both ways."""
+    from sonarsim.dataset import SonarDataset
+    ds = SonarDataset.read(ball_scan)
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    u = np.asarray(ball.vertices)
+    rng = np.random.default_rng(2)
+    centres = rng.normal(size=(150, 3))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    bumps = (rng.choice([-1.0, 1.0], 150) * np.exp(-((u @ centres.T - 1) / 0.006) ** 2)).sum(1)
+    bumps *= 0.003 / np.abs(bumps).max()
+    rough = trimesh.Trimesh(u * (0.03 + inflate + bumps)[:, None] + [0.0, 0.0, 0.06], ball.faces)
+    settings = refine.RefineSettings(envelope_steps=20, waveform_steps=0, lr=1e-3,
+                                     edge_length=6e-3, remesh_every=0, pings_per_batch=12,
+                                     surface_spacing=3e-3)
+    plain = refine.solve(ds, rough, settings, ground=None)
+    smooth = refine.solve(ds, refine.smoothed_start(rough, 1.0, 6e-3), settings, ground=None)
+    closer = abs(_radius_error(smooth.vertices)) < abs(_radius_error(plain.vertices))
+    lower = smooth.stage_misfit("envelope") < plain.stage_misfit("envelope")
+    assert closer == smoothed_wins and lower == smoothed_wins
