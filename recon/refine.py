@@ -304,22 +304,20 @@ def smooth_vertices(vertices: np.ndarray, faces: np.ndarray, lam: float) -> np.n
     fade and large ones stay; the vertex centroid is kept exactly (L's rows sum to zero), a
     convex body shrinks a little (its surface moves inward by about 3 · lam · h² · H, H the
     mean curvature: 3 · lam · h² / R for a sphere of radius R). ``lam`` = 0: a copy."""
-    from scipy.sparse import coo_matrix, diags, identity
+    import trimesh
+    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse.csgraph import laplacian
     from scipy.sparse.linalg import spsolve
     v = np.asarray(vertices, np.float64)
     if not (np.isfinite(lam) and lam >= 0):
         raise InputError(f"start smoothing: lambda must be >= 0, got {lam}")
     if lam == 0 or len(v) == 0:
         return v.copy()
-    f = np.asarray(faces, np.int64)
-    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1),
-                      axis=0)
+    edges = trimesh.Trimesh(v, np.asarray(faces, np.int64), process=False).edges_unique
     n = len(v)
-    adjacency = coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]],
-                                                      np.r_[edges[:, 1], edges[:, 0]])),
-                           shape=(n, n)).tocsr()
-    laplacian = diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
-    return np.asarray(spsolve((identity(n) + lam * laplacian).tocsc(), v), np.float64)
+    upper = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    graph = laplacian((upper + upper.T).tocsr())
+    return np.asarray(spsolve((identity(n) + lam * graph).tocsc(), v), np.float64)
 
 
 def smoothed_start(mesh: trimesh.Trimesh, lam: float, edge_length: float) -> trimesh.Trimesh:
