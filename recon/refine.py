@@ -173,7 +173,7 @@ class RefineResult:
 def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
                min_component: float = 0.05, wrap_radius: float = 0.0,
                grow: np.ndarray | None = None, grow_threshold: float = 0.2,
-               grow_beyond: float = 0.0) -> trimesh.Trimesh:
+               grow_beyond: float = 0.0, add: np.ndarray | None = None) -> trimesh.Trimesh:
     """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
 
     With ``grow`` (a second volume of the same scan on the same grid, e.g. its
@@ -189,7 +189,9 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
     if not (np.isfinite(wrap_radius) and wrap_radius >= 0):
         raise InputError(f"wrap radius: must be >= 0 m, got {wrap_radius}")
     z = voxel_axes(bounds, vol.shape)[2]
-    if grow is not None or wrap_radius > 0:
+    if add is not None and np.shape(add) != vol.shape:
+        raise InputError(f"the added voxels' grid {np.shape(add)} differs from the start's {vol.shape}")
+    if grow is not None or wrap_radius > 0 or add is not None:
         b = np.asarray(bounds, np.float64)
         spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
         occupied = normalized_magnitude(vol, "minmax") > threshold
@@ -199,6 +201,8 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
                                  f"start's {vol.shape}")
             occupied = grow_occupancy(occupied, normalized_magnitude(grow, "minmax"),
                                       grow_threshold, z >= z_min, spacing, grow_beyond)
+        if add is not None:
+            occupied = occupied | np.asarray(add, bool)
         if wrap_radius > 0:
             occupied = wrap_occupancy(occupied, spacing, wrap_radius)
         vol, threshold = occupied.astype(np.float32), 0.5

@@ -491,7 +491,8 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
            "test").write(tmp_path / "shell.h5")
     out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
-                 "--wrap", "0,1", "--smooth", "0", "--no-ground", "--envelope-steps", "1",
+                 "--wrap", "0,1", "--smooth", "0", "--grow-unexplained", "0", "--no-ground",
+                 "--envelope-steps", "1",
                  "--waveform-steps", "2",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
                  "--keep-candidates", "--no-progress"]) == 0

@@ -17,6 +17,8 @@ OUTPUT_SUFFIXES = {"history": (".json",)}
 GROW_THRESHOLD = 0.2           # --grow-threshold's default
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 DEFAULT_SMOOTH = "1"       # and the unwrapped start smoothed once more (docs/refine.md "Smoothed starts")
+DEFAULT_UNEXPLAINED = 0.2  # and the kept start grown by the unexplained data (docs/refine.md
+                           # "Grown from the unexplained data")
 
 OPTION_HELP = {
     "envelope_steps": "steps of stage 1 (matched-filter envelopes)",
@@ -83,6 +85,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--grow: add only structure that reaches farther than K x the range "
                              "resolution c/2B from the start (and its bridge to the start), not "
                              "the layer hugging it (default 0: every touching part)")
+    parser.add_argument("--grow-unexplained", type=float, default=None, metavar="LEVEL",
+                        help="volume --init: after the candidates, image the part of the data "
+                             "the kept one leaves unexplained (backprojection of the data where "
+                             "its rendered envelope falls short, relative to the data's own "
+                             "image), add its parts above LEVEL that reach beyond one range "
+                             "resolution from the start, refine that start too and keep it if "
+                             "its envelope misfit is lower; 0: off (default "
+                             f"{DEFAULT_UNEXPLAINED:g}; docs/refine.md 'Grown from the "
+                             "unexplained data')")
     parser.add_argument("--keep-candidates", action="store_true",
                         help="also write each start and its refinement next to --out, named "
                              "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT, or "
@@ -169,9 +180,10 @@ def candidate_specs(args) -> list[dict]:
             + [{"wrap": 0.0, "smooth": lam} for lam in levels])
 
 
-def initial_meshes(args, dataset) -> list[tuple[float, object]]:
+def initial_meshes(args, dataset, add=None) -> list[tuple[float, object]]:
     """[(wrap factor, start mesh)] of ``--init``: a volume's iso-surface wrapped at each
-    ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file."""
+    ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file; ``add``:
+    voxels (bool, the volume's grid) united with the volume's occupied set first."""
     from ..refine import range_resolution, start_mesh
     import numpy as np
     path = args.init
@@ -206,7 +218,8 @@ def initial_meshes(args, dataset) -> list[tuple[float, object]]:
         beyond = args.grow_beyond * resolution
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
                                wrap_radius=k * resolution, grow=grow,
-                               grow_threshold=args.grow_threshold, grow_beyond=beyond))
+                               grow_threshold=args.grow_threshold, grow_beyond=beyond,
+                               add=add))
                 for k in factors]
     if any(given or ()) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
@@ -229,10 +242,62 @@ def choose_candidate(candidates: list[dict]) -> int:
 
 
 def candidate_label(candidate: dict) -> str:
-    """``wrapK`` or ``smoothL``: a candidate's name in file names and messages."""
+    """``wrapK`` or ``smoothL``, prefixed ``grown-`` for the start grown by the unexplained
+    data: a candidate's name in file names and messages."""
     if candidate.get("smooth", 0):
-        return f"smooth{candidate['smooth']:g}"
-    return f"wrap{candidate['wrap']:g}"
+        name = f"smooth{candidate['smooth']:g}"
+    else:
+        name = f"wrap{candidate['wrap']:g}"
+    return f"grown-{name}" if candidate.get("grown", 0) else name
+
+
+def unexplained_level(args) -> float:
+    """The ``--grow-unexplained`` level: its value, else the default for a volume ``--init``
+    and 0 (off) for a mesh."""
+    is_volume = args.init.suffix.lower() == ".h5"
+    level = args.grow_unexplained
+    if level is None:
+        return DEFAULT_UNEXPLAINED if is_volume else 0.0
+    if not (0 <= level < 1):
+        raise InputError(f"--grow-unexplained: must be in [0, 1), got {level}")
+    if level > 0 and not is_volume:
+        raise InputError("--grow-unexplained applies to a volume --init (.h5), not to a mesh")
+    return float(level)
+
+
+def grown_start(args, dataset, chosen: dict, result, settings, index, level: float):
+    """The kept candidate's start grown by the data it leaves unexplained (``{"wrap", "smooth",
+    "grown", "mesh"}``), or None when the unexplained image adds nothing: the voxels of
+    :func:`recon.unexplained.unexplained_image` (of the refined mesh ``result``) that
+    :func:`recon.unexplained.grown_voxels` adds at ``level`` are united with ``--init``'s
+    occupied set, which then gets the kept start's wrap or smoothing."""
+    import numpy as np
+    from sonarsim.dataset import Volume
+
+    from ..grid import Grid
+    from ..refine import dataset_ground, range_resolution, smoothed_start
+    from ..unexplained import UNEXPLAINED_BEYOND, grown_voxels, unexplained_image
+    vol = Volume.read(args.init)
+    index = np.arange(dataset.n_pings) if index is None else np.asarray(index)
+    ground = None if args.no_ground else dataset_ground(dataset)
+    image, share = unexplained_image(dataset, result.mesh,
+                                     1.0 if result.albedo is None else result.albedo,
+                                     Grid(vol.bounds, vol.volume.shape), index, settings, ground,
+                                     settings.seed)
+    beyond = UNEXPLAINED_BEYOND * range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
+    added = grown_voxels(vol.volume, vol.bounds, args.threshold, args.z_min, image, level, beyond)
+    print(f"unexplained: {share:.1%} of the data's envelope energy; {int(added.sum())} voxels "
+          f"of its image above {level:g} of the data's peak reach beyond {beyond * 1e3:.1f} mm "
+          "of the start")
+    if not added.any():
+        return None
+    smooth = chosen["smooth"]
+    wrap = 0.0 if smooth else chosen["wrap"]
+    [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": format(wrap, "g")}),
+                                 dataset, add=added)
+    if smooth:
+        mesh = smoothed_start(mesh, smooth, settings.edge_length)
+    return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}
 
 
 def candidate_paths(out: Path, candidate: dict) -> tuple[Path, Path]:
@@ -250,11 +315,12 @@ def run(args: argparse.Namespace) -> int:
     ds = _common.load_dataset(argparse.Namespace(dataset=args.dataset, pings=None),
                               refuse_silence="there is nothing to fit")
     specs = candidate_specs(args)
+    level = unexplained_level(args)
     if args.keep_candidates:
         from sonarsim.outputs import check_output
         named = {Path(args.out).resolve()} | ({Path(args.history).resolve()}
                                               if args.history is not None else set())
-        for spec in specs:
+        for spec in specs + ([{**spec, "grown": level} for spec in specs] if level else []):
             for path in candidate_paths(args.out, spec):
                 if path.resolve() in named:
                     raise InputError(f"--keep-candidates: {path} is also another output")
@@ -267,14 +333,16 @@ def run(args: argparse.Namespace) -> int:
                             "is it in metres and in the dataset's frame? (nothing to fit)")
     index = _common.parse_slice(args.pings, ds.n_pings)
     candidates, results = [], []
-    for start in starts:
+
+    def refine_start(start: dict, several: bool) -> None:
         init, name = start["mesh"], candidate_label(start)
-        if len(starts) > 1:
+        if several:
             print(f"start {name}: {len(init.faces)} faces")
         res = solve(ds, init, settings, ping_index=index,
                     ground=None if args.no_ground else "dataset",
                     progress=not args.no_progress, log=print)
         candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
+                           "grown": start.get("grown", 0.0),
                            "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
                            "albedo": res.albedo})
@@ -283,10 +351,19 @@ def run(args: argparse.Namespace) -> int:
             write_mesh(start_path, init)
             write_mesh(refined_path, res.mesh)
         results.append(res)
-        if len(starts) > 1:
+        if several:
             env = candidates[-1]["envelope_misfit"]
             print(f"start {name}: envelope misfit "
                   f"{'-' if env is None else format(env, '.4f')}, final misfit {res.final_misfit:.4f}")
+
+    several = len(starts) > 1 or level > 0
+    for start in starts:
+        refine_start(start, several)
+    if level > 0:
+        best = choose_candidate(candidates)
+        grown = grown_start(args, ds, candidates[best], results[best], settings, index, level)
+        if grown is not None:
+            refine_start(grown, several)
     best = choose_candidate(candidates)
     result, chosen = results[best], candidates[best]
     write_mesh(args.out, result.mesh)
@@ -295,11 +372,12 @@ def run(args: argparse.Namespace) -> int:
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
                                        "wrap": chosen["wrap"], "smooth": chosen["smooth"],
+                                       "grown": chosen["grown"],
                                        "candidates": candidates,
                                        "history": result.history}, indent=1, default=str))
     last = result.history[-1]
     albedo = "" if result.albedo is None else f", albedo {result.albedo:.3f} of the ground's"
-    picked = f" (from the start {candidate_label(chosen)})" if len(starts) > 1 else ""
+    picked = f" (from the start {candidate_label(chosen)})" if len(candidates) > 1 else ""
     print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps{picked}; "
           f"final {last['stage']} loss {last['loss']:.4f}, final misfit {result.final_misfit:.4f}"
           f"{albedo}")
