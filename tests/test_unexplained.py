@@ -164,6 +164,12 @@ def test_refine_command_adds_and_keeps_the_start_grown_by_the_unexplained_data(
     top_small = SMALL[0][2] + SMALL[1]
     assert plain.bounds[1, 2] < BIG[0][2] + BIG[1] + 0.01 < top_small - 0.01 < grown.bounds[1, 2]
     assert len(trimesh.load(out).faces) == cands[1]["faces"]
+    found = record["unexplained"]
+    assert found["level"] == 0.12 and found["voxels_added"] > 0 and 0 < found["share"] < 1
+    from sonarsim.dataset import Volume
+    image = Volume.read(tmp_path / "refined.unexplained.h5")
+    assert image.method == "unexplained" and image.volume.shape == _grid().shape
+    assert np.abs(image.volume).max() >= 0.12
     trimesh.creation.icosphere(radius=0.03).export(tmp_path / "big.ply")
     for extra, words in ((["--grow-unexplained", "1.5"], "--grow-unexplained: must be in [0, 1)"),
                          (["--grow-unexplained", "0.2", "--init", str(tmp_path / "big.ply")],

@@ -97,8 +97,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-candidates", action="store_true",
                         help="also write each start and its refinement next to --out, named "
                              "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT, or "
-                             "OUT_STEM.smoothL.start.EXT and OUT_STEM.smoothL.EXT (e.g. to score "
-                             "every candidate)")
+                             "OUT_STEM.smoothL.start.EXT and OUT_STEM.smoothL.EXT, the grown one "
+                             "OUT_STEM.grown-....EXT, and the unexplained image as a volume, "
+                             "OUT_STEM.unexplained.h5 (e.g. to score every candidate)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
@@ -266,8 +267,10 @@ def unexplained_level(args) -> float:
 
 
 def grown_start(args, dataset, chosen: dict, result, settings, index, level: float):
-    """The kept candidate's start grown by the data it leaves unexplained (``{"wrap", "smooth",
-    "grown", "mesh"}``), or None when the unexplained image adds nothing: the voxels of
+    """(start, record): the kept candidate's start grown by the data it leaves unexplained
+    (``{"wrap", "smooth", "grown", "mesh"}``, None when the unexplained image adds nothing) and
+    what was found (``{"level", "share", "voxels_added", "beyond_m", "image"}``, the image a
+    :class:`~sonarsim.dataset.Volume` on ``--init``'s grid): the voxels of
     :func:`recon.unexplained.unexplained_image` (of the refined mesh ``result``) that
     :func:`recon.unexplained.grown_voxels` adds at ``level`` are united with ``--init``'s
     occupied set, which then gets the kept start's wrap or smoothing."""
@@ -276,7 +279,8 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
 
     from ..grid import Grid
     from ..refine import dataset_ground, range_resolution, smoothed_start
-    from ..unexplained import UNEXPLAINED_BEYOND, grown_voxels, unexplained_image
+    from ..unexplained import (UNEXPLAINED_BEYOND, grown_voxels, residual_pings,
+                               unexplained_image)
     vol = Volume.read(args.init)
     index = np.arange(dataset.n_pings) if index is None else np.asarray(index)
     ground = None if args.no_ground else dataset_ground(dataset)
@@ -289,15 +293,26 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
     print(f"unexplained: {share:.1%} of the data's envelope energy; {int(added.sum())} voxels "
           f"of its image above {level:g} of the data's peak reach beyond {beyond * 1e3:.1f} mm "
           "of the start")
+    record = {"level": level, "share": share, "voxels_added": int(added.sum()),
+              "beyond_m": beyond,
+              "image": Volume(volume=image.astype(np.complex64), bounds=vol.bounds,
+                              method="unexplained",
+                              params={"level": level, "share": share,
+                                      "pings": int(len(residual_pings(index)))})}
     if not added.any():
-        return None
+        return None, record
     smooth = chosen["smooth"]
     wrap = 0.0 if smooth else chosen["wrap"]
     [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": format(wrap, "g")}),
                                  dataset, add=added)
     if smooth:
         mesh = smoothed_start(mesh, smooth, settings.edge_length)
-    return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}
+    return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}, record
+
+
+def unexplained_path(out: Path) -> Path:
+    """Where ``--keep-candidates`` writes the unexplained image (``OUT_STEM.unexplained.h5``)."""
+    return out.with_name(f"{out.stem}.unexplained.h5")
 
 
 def candidate_paths(out: Path, candidate: dict) -> tuple[Path, Path]:
@@ -320,12 +335,13 @@ def run(args: argparse.Namespace) -> int:
         from sonarsim.outputs import check_output
         named = {Path(args.out).resolve()} | ({Path(args.history).resolve()}
                                               if args.history is not None else set())
-        for spec in specs + ([{**spec, "grown": level} for spec in specs] if level else []):
-            for path in candidate_paths(args.out, spec):
-                if path.resolve() in named:
-                    raise InputError(f"--keep-candidates: {path} is also another output")
-                check_output(path, force=bool(getattr(args, "force", False)),
-                             option="--keep-candidates")
+        grown_specs = [{**spec, "grown": level} for spec in specs] if level else []
+        paths = [p for spec in specs + grown_specs for p in candidate_paths(args.out, spec)]
+        for path in paths + ([unexplained_path(args.out)] if level else []):
+            if path.resolve() in named:
+                raise InputError(f"--keep-candidates: {path} is also another output")
+            check_output(path, force=bool(getattr(args, "force", False)),
+                         option="--keep-candidates")
     starts = start_candidates(args, ds, settings.edge_length, specs)
     from ..checks import check_box_sees_data
     for start in starts:
@@ -359,9 +375,13 @@ def run(args: argparse.Namespace) -> int:
     several = len(starts) > 1 or level > 0
     for start in starts:
         refine_start(start, several)
+    found = None
     if level > 0:
         best = choose_candidate(candidates)
-        grown = grown_start(args, ds, candidates[best], results[best], settings, index, level)
+        grown, found = grown_start(args, ds, candidates[best], results[best], settings, index,
+                                   level)
+        if args.keep_candidates:
+            found["image"].write(unexplained_path(args.out))
         if grown is not None:
             refine_start(grown, several)
     best = choose_candidate(candidates)
@@ -373,6 +393,8 @@ def run(args: argparse.Namespace) -> int:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
                                        "wrap": chosen["wrap"], "smooth": chosen["smooth"],
                                        "grown": chosen["grown"],
+                                       "unexplained": None if found is None else {
+                                           k: v for k, v in found.items() if k != "image"},
                                        "candidates": candidates,
                                        "history": result.history}, indent=1, default=str))
     last = result.history[-1]
