@@ -284,6 +284,8 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
     vol = Volume.read(args.init)
     index = np.arange(dataset.n_pings) if index is None else np.asarray(index)
     ground = None if args.no_ground else dataset_ground(dataset)
+    print(f"unexplained: rendering the kept candidate for {len(residual_pings(index))} pings and "
+          "imaging what it leaves unexplained")
     image, share = unexplained_image(dataset, result.mesh,
                                      1.0 if result.albedo is None else result.albedo,
                                      Grid(vol.bounds, vol.volume.shape), index, settings, ground,
