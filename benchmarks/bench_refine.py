@@ -39,8 +39,7 @@ def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None)
     mi = runtime.mitsuba()
     import drjit as dr
     settings = refine.RefineSettings(bounces=bounces)
-    k = int(ds.meta.get("oversample", 20))
-    window = refine.dataset_window(ds, k)
+    _, window, _ = refine.dataset_chain(ds, settings)
     index = np.linspace(0, ds.n_pings - 1, n_pings).astype(int)
     rows = []
     labels = None if patch_size is None else refine.patch_labels(mesh.vertices, mesh.faces,

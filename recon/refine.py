@@ -215,7 +215,7 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
 
 def grow_occupancy(occupied: np.ndarray, other: np.ndarray, threshold: float,
                    allowed_z: np.ndarray | None = None, spacing=None,
-                   beyond: float = 0.0) -> np.ndarray:
+                   beyond: float = 0.0, touching: bool = True) -> np.ndarray:
     """bool [nx, ny, nz]: ``occupied`` ∪ the parts of {``other`` ≥ ``threshold``} outside it
     that touch it (face-connected; ``other``: a normalised |volume| in [0, 1] on the same grid;
     restricted to the z planes ``allowed_z`` [nz]).
@@ -226,6 +226,10 @@ def grow_occupancy(occupied: np.ndarray, other: np.ndarray, threshold: float,
     bridge to the start); the layer that only hugs the start (the backprojection's blur around
     a surface the start already has) is left out.
 
+    With ``touching`` False the parts so selected are added whether they touch ``occupied`` or
+    not (a separate object the start lacks; :func:`recon.unexplained.grown_voxels`); with no
+    occupied voxel at all, every candidate then counts as far.
+
     The use (``recon refine --grow``): a reconstruction with a strong model (NBP) can miss a
     thin part that the data's backprojection still images (the Table-2 bunny's ear tips,
     docs/refine.md); the support stage then keeps the patches that the data supports.
@@ -235,13 +239,15 @@ def grow_occupancy(occupied: np.ndarray, other: np.ndarray, threshold: float,
     candidate = (np.asarray(other) >= threshold) & ~occupied
     if allowed_z is not None:
         candidate &= np.asarray(allowed_z, bool)[None, None, :]
-    if beyond > 0:
+    if beyond > 0 and occupied.any():
         spacing = np.asarray(spacing, np.float64)
         far = candidate & (ndimage.distance_transform_edt(~occupied, sampling=spacing) > beyond)
         reach = far
         for _ in range(int(np.ceil(beyond / spacing.min()))):
             reach = ndimage.binary_dilation(reach) & candidate
         candidate = reach
+    if not touching:
+        return occupied | candidate
     labels, _ = ndimage.label(candidate)
     touching = np.unique(labels[ndimage.binary_dilation(occupied) & candidate])
     return occupied | np.isin(labels, touching[touching > 0])
@@ -467,6 +473,17 @@ def drop_faces(vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray,
 
 # ------------------------------------------------------------------------ the model
 
+def dataset_chain(dataset, settings: RefineSettings) -> tuple[int, tuple[float, float, int],
+                                                                PulseChain]:
+    """(K, window, chain): the histogram bins per sample (``settings.oversample``, else the
+    dataset's, else 20), the :func:`dataset_window` at K and the dataset's pulse chain from
+    histograms of that window to its waveforms."""
+    k = int(dataset.meta.get("oversample", 20) if settings.oversample is None
+            else settings.oversample)
+    window = dataset_window(dataset, k)
+    return k, window, PulseChain(dataset.pulse, k, dataset.n_samples, window[2])
+
+
 def dataset_window(dataset, oversample: int) -> tuple[float, float, int]:
     """(start, width, bins) of histograms aligned to a dataset's samples: round-trip path
     (m) of bin 0's lower edge, bin width c/(fs·K), T·K bins; bin j·K is centred on the path
@@ -636,10 +653,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     if len(index) == 0:
         raise InputError("no pings to fit")
     ground = dataset_ground(dataset) if ground == "dataset" else ground
-    k = int(dataset.meta.get("oversample", 20) if settings.oversample is None
-            else settings.oversample)
-    window = dataset_window(dataset, k)
-    objective = _Objective(dataset, PulseChain(dataset.pulse, k, dataset.n_samples, window[2]))
+    k, window, chain = dataset_chain(dataset, settings)
+    objective = _Objective(dataset, chain)
     vertices, faces = remesh(init.vertices, init.faces, settings.edge_length)
 
     n_batches = max(1, int(np.ceil(len(index) / settings.pings_per_batch)))

@@ -50,14 +50,10 @@ def model_waveforms(dataset, mesh, albedo: float, index: np.ndarray, settings, g
 
     from sonarsim import runtime
 
-    from .pulse_chain import PulseChain
-    from .refine import RenderedScene, dataset_window
+    from .refine import RenderedScene, dataset_chain
     mi = runtime.mitsuba()
     import drjit as dr
-    k = int(dataset.meta.get("oversample", 20) if settings.oversample is None
-            else settings.oversample)
-    window = dataset_window(dataset, k)
-    chain = PulseChain(dataset.pulse, k, dataset.n_samples, window[2])
+    _, window, chain = dataset_chain(dataset, settings)
     out = np.zeros((len(index), dataset.n_samples))
     with tempfile.TemporaryDirectory(prefix="unexplained-") as workdir:
         model = RenderedScene(mesh, dataset, window, ground, settings, workdir)
@@ -119,11 +115,11 @@ def grown_voxels(volume: np.ndarray, bounds, threshold: float, z_min: float,
     start's occupied set (normalised |``volume``| > ``threshold``): of the voxels ≥ ``level``
     at z ≥ ``z_min`` outside the set, those farther than ``beyond`` (m) from it, and those
     within geodesic distance ``beyond`` of them through such voxels (their bridge towards the
-    set). The layer of an imperfect fit's residual that only hugs the start is left out; a part
-    detached from the start is added (a separate object the start lacks)."""
-    from scipy import ndimage
-
+    set) — :func:`recon.refine.grow_occupancy` without its touching rule. The layer of an
+    imperfect fit's residual that only hugs the start is left out; a part detached from the
+    start is added (a separate object the start lacks)."""
     from .export import normalized_magnitude, voxel_axes
+    from .refine import grow_occupancy
     if np.shape(image) != np.shape(volume):
         raise InputError(f"the unexplained image's grid {np.shape(image)} differs from the "
                          f"start's {np.shape(volume)}")
@@ -131,10 +127,5 @@ def grown_voxels(volume: np.ndarray, bounds, threshold: float, z_min: float,
     b = np.asarray(bounds, np.float64)
     spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(occupied.shape) - 1, 1)
     z = voxel_axes(bounds, occupied.shape)[2]
-    candidate = (np.asarray(image) >= level) & ~occupied & (z >= z_min)[None, None, :]
-    if not occupied.any():
-        return candidate
-    reach = candidate & (ndimage.distance_transform_edt(~occupied, sampling=spacing) > beyond)
-    for _ in range(int(np.ceil(beyond / spacing.min()))):
-        reach = ndimage.binary_dilation(reach) & candidate
-    return reach
+    return grow_occupancy(occupied, np.asarray(image), level, z >= z_min, spacing, beyond,
+                          touching=False) & ~occupied
