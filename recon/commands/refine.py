@@ -153,19 +153,14 @@ def smoothing_levels(text: str) -> list[float]:
 def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> list[dict]:
     """The starts to refine: ``specs`` (:func:`candidate_specs`) each with its ``"mesh"``: the
     :func:`initial_meshes` for ``smooth`` 0, and for a level L > 0 the unwrapped start smoothed
-    by :func:`recon.refine.smoothed_start`."""
+    by :func:`recon.refine.smoothed_start` (one :func:`initial_meshes` call makes them all)."""
     from ..refine import smoothed_start
+    if args.init.suffix.lower() == ".h5":      # every wrap factor and 0 for the smoothed ones, once
+        wraps = ",".join(repr(k) for k in dict.fromkeys(spec["wrap"] for spec in specs))
+        args = argparse.Namespace(**{**vars(args), "wrap": wraps})
     starts = dict(initial_meshes(args, dataset))
-    out = []
-    for spec in specs:
-        if not spec["smooth"]:
-            out.append({**spec, "mesh": starts[spec["wrap"]]})
-            continue
-        if 0.0 not in starts:                    # --wrap without 0: the unwrapped start anyway
-            starts.update(initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}),
-                                         dataset))
-        out.append({**spec, "mesh": smoothed_start(starts[0.0], spec["smooth"], edge_length)})
-    return out
+    return [{**spec, "mesh": smoothed_start(starts[0.0], spec["smooth"], edge_length)
+             if spec["smooth"] else starts[spec["wrap"]]} for spec in specs]
 
 
 def candidate_specs(args) -> list[dict]:
@@ -284,8 +279,9 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
     vol = Volume.read(args.init)
     index = np.arange(dataset.n_pings) if index is None else np.asarray(index)
     ground = None if args.no_ground else dataset_ground(dataset)
-    print(f"unexplained: rendering the kept candidate for {len(residual_pings(index))} pings and "
-          "imaging what it leaves unexplained")
+    n_pings = len(residual_pings(index))
+    print(f"unexplained: rendering the kept candidate for {n_pings} pings and imaging what it "
+          "leaves unexplained")
     image, share = unexplained_image(dataset, result.mesh,
                                      1.0 if result.albedo is None else result.albedo,
                                      Grid(vol.bounds, vol.volume.shape), index, settings, ground,
@@ -300,12 +296,12 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
               "image": Volume(volume=image.astype(np.complex64), bounds=vol.bounds,
                               method="unexplained",
                               params={"level": level, "share": share,
-                                      "pings": int(len(residual_pings(index)))})}
+                                      "pings": n_pings})}
     if not added.any():
         return None, record
     smooth = chosen["smooth"]
     wrap = 0.0 if smooth else chosen["wrap"]
-    [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": format(wrap, "g")}),
+    [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": repr(wrap)}),
                                  dataset, add=added)
     if smooth:
         mesh = smoothed_start(mesh, smooth, settings.edge_length)
