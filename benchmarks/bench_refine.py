@@ -2,15 +2,16 @@
 back-propagate a waveform-domain gradient to the vertices (the work of every optimiser step).
 
     python benchmarks/bench_refine.py DATASET.h5 [--pings-per-batch 64] [--bounces 1 2]
-        [--edge-length 0.005] [--patch-size 0.025] [--repeats 2] [--out result.json]
+        [--edge-length 0.005] [--patch-size 0.025 | --affine] [--repeats 2] [--out result.json]
 
 The mesh is the dataset's ground-truth mesh remeshed to --edge-length (the size the refinement
 works at); the ground is the dataset's. Prints one JSON line per bounce count: faces, pings,
 seconds (wall, best of --repeats after one warm-up) and CPU seconds (user+sys of the process)
 for the forward render and for forward + backward. ``--patch-size``: the support stage's
 scene instead (the mesh cut into patches of that size, one albedo each; the backward pass
-then also yields the per-patch albedo gradients), with its scene-building time. On a shared
-machine report CPU time.
+then also yields the per-patch albedo gradients), with its scene-building time. ``--affine``:
+the affine stage's step instead (the vertices a function of its six parameters, the
+gradient carried back to them). On a shared machine report CPU time.
 """
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ def cpu_seconds() -> float:
     return t.user + t.system
 
 
-def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None) -> dict:
+def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None,
+            affine: bool = False) -> dict:
     from recon import refine
     from sonarsim import runtime
     mi = runtime.mitsuba()
@@ -50,9 +52,16 @@ def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None)
                                      labels)
         t_build, c_build = time.perf_counter() - t_build, cpu_seconds() - c_build
         v0, _ = scene.vertices
+        pivot, half = refine.affine_frame(mesh.vertices, 0.008)
         for rep in range(repeats + 1):
-            v = mi.Float(v0)
-            dr.enable_grad(v)
+            params = [mi.Float(np.zeros(n, np.float32)) for n in (3, 2)]   # log-scales, shift
+            if affine:
+                for q in params:
+                    dr.enable_grad(q)
+                v = refine._affine_ad(mi, dr, v0, pivot, half, *params)
+            else:
+                v = mi.Float(v0)
+                dr.enable_grad(v)
             albedo = mi.Float(np.ones(scene.n_patches if labels is not None else 1, np.float32))
             dr.enable_grad(albedo)
             t0, c0 = time.perf_counter(), cpu_seconds()
@@ -61,10 +70,11 @@ def measure(ds, mesh, bounces: int, n_pings: int, repeats: int, patch_size=None)
             t1, c1 = time.perf_counter(), cpu_seconds()
             weight = mi.TensorXf(np.ones(h.shape, np.float32))
             dr.backward(dr.sum(hist * weight, axis=None))
-            dr.grad(v).numpy()
+            (dr.grad(params[0]) if affine else dr.grad(v)).numpy()
             rows.append((t1 - t0, c1 - c0, time.perf_counter() - t0, cpu_seconds() - c0))
     best = min(rows[1:], key=lambda r: r[2])
     return {"bounces": bounces, "faces": int(len(mesh.faces)), "pings": int(n_pings),
+            "gradient_of": "affine parameters" if affine else "vertices",
             "patches": int(scene.n_patches) if labels is not None else None,
             "build_s": round(t_build, 3), "build_cpu_s": round(c_build, 3),
             "bins": int(window[2]), "forward_s": round(best[0], 3), "forward_cpu_s": round(best[1], 3),
@@ -81,6 +91,8 @@ def main(argv=None) -> int:
     p.add_argument("--edge-length", type=float, default=5e-3)
     p.add_argument("--patch-size", type=float, default=None,
                    help="measure the support stage's patch scene (patch size, m)")
+    p.add_argument("--affine", action="store_true",
+                   help="measure the affine stage's step (gradient of its six parameters)")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -89,7 +101,10 @@ def main(argv=None) -> int:
         p.error(f"{args.dataset} has no ground-truth mesh")
     v, f = refine.remesh(ds.gt_vertices, ds.gt_faces, args.edge_length)
     mesh = trimesh.Trimesh(v, f, process=False)
-    results = [measure(ds, mesh, b, args.pings_per_batch, args.repeats, args.patch_size)
+    if args.affine and args.patch_size is not None:
+        p.error("--affine and --patch-size measure different stages: give one")
+    results = [measure(ds, mesh, b, args.pings_per_batch, args.repeats, args.patch_size,
+                       args.affine)
                for b in args.bounces]
     for r in results:
         print(json.dumps(r))

@@ -24,6 +24,11 @@ the rendered waveforms match the dataset's:
   (UniformAdam, the tutorial's choice, on request); the mesh is remeshed isotropically
   (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) at the start and, with
   ``remesh_every``, between segments, which keeps the triangles well shaped.
+* **Affine stage** (first, ``affine_steps``): the whole start is scaled per axis about its
+  base and shifted (six parameters, :func:`affine_vertices`) by the envelope misfit before
+  any vertex moves alone: a thresholded volume's surface sits a few millimetres off the
+  truth by the same amount over a whole face (the τ-cut of the blurred echo), which the
+  vertex stages, caught by the start's roughness, do not undo.
 * **Support stage** (optional, first): the mesh is cut into patches with one albedo each;
   the albedos are fitted to the envelopes with the geometry fixed and the patches the data
   leave dark (below ``support_keep`` × the median) are removed: floaters and smears of the
@@ -81,6 +86,11 @@ class RefineSettings:
     second-moment scale for all vertices (UniformAdam, Nicolet et al. 2021); False: Adam per
     coordinate, so weakly lit surface (a top seen obliquely) moves as fast as the rest.
 
+    affine_steps: steps of the affine stage that runs before the envelope stage (0: none):
+    the start is scaled per axis about its base and shifted (:func:`affine_vertices`), fitted
+    to the envelopes with Adam at step ``lr`` (metres at the start's half extent), the
+    albedo with it.
+
     support_steps: steps of the support stage that runs first (0: none): the mesh is cut
     into patches of about ``patch_size`` (m, k-means of the face centroids), each patch's
     albedo is fitted to the envelopes (log-albedo, Adam step ``support_lr``) with the
@@ -90,7 +100,9 @@ class RefineSettings:
 
     # The defaults are the command measured from the NBP preset's solids of the full-size
     # Table-2 scans (bunny, cube, cylinder; checked on a held-out box; docs/refine.md
-    # "Defaults"): 40 + 20 steps of 32 pings, no remeshing, per-coordinate Adam.
+    # "Defaults"): 40 + 20 steps of 32 pings, no remeshing, per-coordinate Adam; first 20
+    # affine steps (eleven scenes, docs/refine.md "The affine stage").
+    affine_steps: int = 20
     envelope_steps: int = 40
     waveform_steps: int = 20
     lr: float = 1e-3
@@ -112,7 +124,8 @@ class RefineSettings:
     support_lr: float = 0.1
 
     def validate(self) -> None:
-        for name in ("envelope_steps", "waveform_steps", "remesh_every", "support_steps"):
+        for name in ("affine_steps", "envelope_steps", "waveform_steps", "remesh_every",
+                     "support_steps"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
                 raise InputError(f"{name} must be a non-negative integer, got {getattr(self, name)}")
         for name in ("pings_per_batch", "bounces", "path_samples"):
@@ -132,8 +145,9 @@ class RefineSettings:
             raise InputError(f"envelope_blur must be a non-negative number (m), got {self.envelope_blur}")
         if not (np.isfinite(self.support_keep) and 0 <= self.support_keep < 1):
             raise InputError(f"support_keep must be in [0, 1), got {self.support_keep}")
-        if self.envelope_steps + self.waveform_steps + self.support_steps == 0:
-            raise InputError("nothing to do: support_steps + envelope_steps + waveform_steps is 0")
+        if self.affine_steps + self.envelope_steps + self.waveform_steps + self.support_steps == 0:
+            raise InputError("nothing to do: support_steps + affine_steps + envelope_steps + "
+                             "waveform_steps is 0")
 
 
 @dataclass
@@ -146,6 +160,7 @@ class RefineResult:
     albedo: float | None
     history: list = field(default_factory=list)
     settings: dict = field(default_factory=dict)
+    affine: dict | None = None      # the affine stage's fit: pivot (m), scale [3], shift (m)
 
     @property
     def final_misfit(self) -> float:
@@ -155,7 +170,7 @@ class RefineResult:
         return self.stage_misfit(self.history[-1]["stage"])
 
     def stage_misfit(self, stage: str) -> float | None:
-        """Mean loss of ``stage`` ('support', 'envelope', 'waveform') over its last pass over
+        """Mean loss of ``stage`` ('support', 'affine', 'envelope', 'waveform') over its last pass over
         the batches (the whole stage when shorter); None when the stage did not run."""
         losses = [h["loss"] for h in self.history if h["stage"] == stage]
         if not losses:
@@ -304,6 +319,36 @@ def range_resolution(pulse: np.ndarray, fs: float, sound_speed: float) -> float:
     freqs = np.fft.rfftfreq(n, 1.0 / float(fs))[spectrum >= 0.5 * spectrum.max()]
     bandwidth = float(freqs.max() - freqs.min())
     return float(sound_speed) / (2.0 * bandwidth)
+
+
+def affine_frame(vertices: np.ndarray, edge_length: float) -> tuple[np.ndarray, float]:
+    """(pivot [3] m, half extent m) of the affine stage for a start's vertices [V, 3]: the
+    pivot is the centroid's x, y at the lowest z, so a scale along z keeps the base on the
+    ground; the half extent (half the largest side of the bounding box, at least
+    ``edge_length``) converts the log-scales to metres at the object's edge."""
+    v = np.asarray(vertices, np.float64)
+    pivot = np.array([v[:, 0].mean(), v[:, 1].mean(), v[:, 2].min()])
+    return pivot, max(0.5 * float(np.ptp(v, axis=0).max()), float(edge_length))
+
+
+def affine_vertices(vertices: np.ndarray, pivot, half: float, log_scale, shift) -> np.ndarray:
+    """float64 [V, 3]: p + diag(exp(q / h))·(v − p) + (t_x, t_y, 0) for vertices v [V, 3] (m),
+    pivot p [3] and half extent h (:func:`affine_frame`), q = ``log_scale`` [3] in metres at
+    the half extent and (t_x, t_y) = ``shift`` [2] (m): the affine stage's map (:func:`solve`
+    differentiates the same expression in Dr.Jit). No vertical shift: the object stays on
+    the ground (docs/refine.md "The affine stage")."""
+    v, p = np.asarray(vertices, np.float64), np.asarray(pivot, np.float64)
+    t = np.append(np.asarray(shift, np.float64), 0.0)
+    return p + np.exp(np.asarray(log_scale, np.float64) / half) * (v - p) + t
+
+
+def _affine_ad(mi, dr, v0, pivot, half: float, log_scale, shift):
+    """:func:`affine_vertices` on a flat Dr.Jit vertex buffer [V·3] with differentiable
+    ``log_scale`` (Float [3]) and ``shift`` (Float [2])."""
+    axis = dr.arange(mi.UInt32, dr.width(v0)) % 3
+    p = dr.gather(mi.Float, mi.Float(np.asarray(pivot, np.float32)), axis)
+    t = dr.select(axis < 2, dr.gather(mi.Float, shift, dr.minimum(axis, 1)), 0.0)
+    return p + dr.exp(dr.gather(mi.Float, log_scale, axis) / half) * (v0 - p) + t
 
 
 def smooth_vertices(vertices: np.ndarray, faces: np.ndarray, lam: float) -> np.ndarray:
@@ -631,6 +676,40 @@ class _Objective:
 
 # ------------------------------------------------------------------------ the solver
 
+def _fit_affine(model, vertices, log_albedo, settings, fit_albedo, misfit_and_backward,
+                history, bar, t0):
+    """The affine stage: ``settings.affine_steps`` Adam steps on the six parameters of
+    :func:`affine_vertices` (and the log-albedo) against the envelopes. Returns (vertices
+    [V, 3], log-albedo, the fit {'pivot', 'half', 'log_scale', 'scale', 'shift'}); one
+    record per step is appended to ``history``."""
+    mi, dr = model.mi, model.dr
+    pivot, half = affine_frame(vertices, settings.edge_length)
+    v0 = model.vertices[0]
+    opt = mi.ad.Adam(lr=settings.lr)
+    opt["log_scale"] = mi.Float(np.zeros(3, np.float32))
+    opt["shift"] = mi.Float(np.zeros(2, np.float32))
+    opt_rho = mi.ad.Adam(lr=0.02)
+    opt_rho["log_albedo"] = mi.Float(log_albedo)
+    n = settings.affine_steps
+    for j in range(n):
+        opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * j / max(1, n - 1)))))
+        loss, alpha = misfit_and_backward(
+            model, _affine_ad(mi, dr, v0, pivot, half, opt["log_scale"], opt["shift"]),
+            dr.exp(opt_rho["log_albedo"]), "envelope")
+        opt.step()
+        if fit_albedo:
+            opt_rho.step()
+        history.append({"step": len(history), "stage": "affine", "loss": loss, "alpha": alpha,
+                        "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
+                        "seconds": time.perf_counter() - t0})
+        bar.update(1)
+    q = np.asarray(opt["log_scale"].numpy(), np.float64)
+    t = np.asarray(opt["shift"].numpy(), np.float64)
+    fit = {"pivot": pivot.tolist(), "half": half, "log_scale": q.tolist(),
+           "scale": np.exp(q / half).tolist(), "shift": t.tolist()}
+    return affine_vertices(vertices, pivot, half, q, t), float(opt_rho["log_albedo"][0]), fit
+
+
 def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSettings(), *,
           ping_index: np.ndarray | None = None, ground="dataset", progress: bool = False,
           log=None) -> RefineResult:
@@ -664,10 +743,11 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     log_albedo = 0.0
     plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
     history, step, order = [], 0, np.arange(n_batches)
-    bar = progress_bar(settings.support_steps + sum(n for _, n in plan), progress, unit="step",
+    bar = progress_bar(settings.support_steps + settings.affine_steps + sum(n for _, n in plan),
+                       progress, unit="step",
                        desc="refine")
     t0 = time.perf_counter()
-    support = None
+    support = affine = None
 
     samples_per_metre = 2.0 * float(dataset.fs) / float(dataset.sound_speed)   # one-way range
 
@@ -675,6 +755,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
         """One step's misfit (loss, alpha) of the next batch (a new batch order per pass over
         the batches) and its gradient propagated to ``vertices_ad`` and ``albedo_ad``."""
         nonlocal order
+        step = len(history)
         if step % n_batches == 0:
             order = rng.permutation(n_batches)
         b = int(order[step % n_batches])
@@ -721,12 +802,24 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     log(f"support steps {settings.support_steps}: loss {np.mean(recent):.4f}, kept "
                         f"{support['patches_kept']}/{support['patches']} patches, "
                         f"{len(faces)}/{n_before} faces, {time.perf_counter() - t0:.0f} s")
+            if settings.affine_steps:
+                vertices, log_albedo, affine = _fit_affine(
+                    RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
+                                  window, ground, settings, workdir),
+                    vertices, log_albedo, settings, fit_albedo, misfit_and_backward, history,
+                    bar, t0)
+                step = len(history)
+                if log is not None:
+                    recent = [h["loss"] for h in history[-min(settings.affine_steps, 2 * n_batches):]]
+                    log(f"affine steps {settings.affine_steps}: loss {np.mean(recent):.4f}, scale "
+                        f"{np.round(affine['scale'], 4).tolist()}, shift "
+                        f"{np.round(affine['shift'], 4).tolist()} m, {time.perf_counter() - t0:.0f} s")
             for stage, n_steps in plan:
                 done = 0
                 while done < n_steps:
                     seg = n_steps - done if not settings.remesh_every else min(
                         settings.remesh_every, n_steps - done)
-                    if step > 0 and history[-1]["stage"] != "support":
+                    if step > 0 and history[-1]["stage"] not in ("support", "affine"):
                         vertices, faces = remesh(vertices, faces, settings.edge_length)
                     model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
                                           window, ground, settings, workdir)
@@ -766,4 +859,5 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     return RefineResult(vertices, faces, float(np.exp(log_albedo)) if fit_albedo else None,
                         history, {**asdict(settings), "pings": int(len(index)),
                                   "batches": int(n_batches),
-                                  "ground": ground, "oversample": k, "support": support})
+                                  "ground": ground, "oversample": k, "support": support},
+                        affine)

@@ -21,6 +21,8 @@ DEFAULT_UNEXPLAINED = 0.2  # and the kept start grown by the unexplained data (d
                            # "Grown from the unexplained data")
 
 OPTION_HELP = {
+    "affine_steps": "steps of the affine stage (the start scaled per axis about its base and "
+                    "shifted, fitted to the envelopes) before the envelope stage; 0: none",
     "envelope_steps": "steps of stage 1 (matched-filter envelopes)",
     "waveform_steps": "steps of stage 2 (raw waveforms)",
     "lr": "Adam step in metres of latent displacement (cosine decay to 1/10 per stage)",
@@ -359,7 +361,9 @@ def run(args: argparse.Namespace) -> int:
                            "grown": start.get("grown", 0.0),
                            "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
-                           "albedo": res.albedo})
+                           "albedo": res.albedo,
+                           "affine": None if res.affine is None else {
+                               k: res.affine[k] for k in ("scale", "shift")}})
         if args.keep_candidates:           # after the fit: a failed one leaves no files
             start_path, refined_path = candidate_paths(args.out, start)
             write_mesh(start_path, init)
