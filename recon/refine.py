@@ -25,10 +25,10 @@ the rendered waveforms match the dataset's:
   (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) at the start and, with
   ``remesh_every``, between segments, which keeps the triangles well shaped.
 * **Affine stage** (first, ``affine_steps``): the whole start is scaled per axis about its
-  base and shifted (six parameters, :func:`affine_vertices`) by the envelope misfit before
-  any vertex moves alone: a thresholded volume's surface sits a few millimetres off the
-  truth by the same amount over a whole face (the τ-cut of the blurred echo), which the
-  vertex stages, caught by the start's roughness, do not undo.
+  base and shifted horizontally (five parameters, :func:`affine_vertices`) by the envelope
+  misfit before any vertex moves alone: a thresholded volume's surface sits a few
+  millimetres off the truth by the same amount over a whole face (the τ-cut of the blurred
+  echo), which the vertex stages, caught by the start's roughness, do not undo.
 * **Support stage** (optional, first): the mesh is cut into patches with one albedo each;
   the albedos are fitted to the envelopes with the geometry fixed and the patches the data
   leave dark (below ``support_keep`` × the median) are removed: floaters and smears of the
@@ -87,9 +87,9 @@ class RefineSettings:
     coordinate, so weakly lit surface (a top seen obliquely) moves as fast as the rest.
 
     affine_steps: steps of the affine stage that runs before the envelope stage (0: none):
-    the start is scaled per axis about its base and shifted (:func:`affine_vertices`), fitted
-    to the envelopes with Adam at step ``lr`` (metres at the start's half extent), the
-    albedo with it.
+    the start is scaled per axis about its base and shifted horizontally
+    (:func:`affine_vertices`), fitted to the envelopes with Adam at step ``lr`` (metres at
+    the start's half extent), the albedo with it.
 
     support_steps: steps of the support stage that runs first (0: none): the mesh is cut
     into patches of about ``patch_size`` (m, k-means of the face centroids), each patch's
@@ -100,9 +100,10 @@ class RefineSettings:
 
     # The defaults are the command measured from the NBP preset's solids of the full-size
     # Table-2 scans (bunny, cube, cylinder; checked on a held-out box; docs/refine.md
-    # "Defaults"): 40 + 20 steps of 32 pings, no remeshing, per-coordinate Adam; first 20
-    # affine steps (eleven scenes, docs/refine.md "The affine stage").
-    affine_steps: int = 20
+    # "Defaults"): 40 + 20 steps of 32 pings, no remeshing, per-coordinate Adam. No affine
+    # stage: measured on eleven scenes it halves the cube but costs four others, and it lets
+    # the cube's ghost-grown candidate win (docs/refine.md "The affine stage").
+    affine_steps: int = 0
     envelope_steps: int = 40
     waveform_steps: int = 20
     lr: float = 1e-3
@@ -160,7 +161,7 @@ class RefineResult:
     albedo: float | None
     history: list = field(default_factory=list)
     settings: dict = field(default_factory=dict)
-    affine: dict | None = None      # the affine stage's fit: pivot (m), scale [3], shift (m)
+    affine: dict | None = None      # the affine stage's fit: pivot (m), scale [3], shift [2] (m)
 
     @property
     def final_misfit(self) -> float:
@@ -170,8 +171,8 @@ class RefineResult:
         return self.stage_misfit(self.history[-1]["stage"])
 
     def stage_misfit(self, stage: str) -> float | None:
-        """Mean loss of ``stage`` ('support', 'affine', 'envelope', 'waveform') over its last pass over
-        the batches (the whole stage when shorter); None when the stage did not run."""
+        """Mean loss of ``stage`` ('support', 'affine', 'envelope', 'waveform') over its last
+        pass over the batches (the whole stage when shorter); None when the stage did not run."""
         losses = [h["loss"] for h in self.history if h["stage"] == stage]
         if not losses:
             return None
@@ -678,7 +679,7 @@ class _Objective:
 
 def _fit_affine(model, vertices, log_albedo, settings, fit_albedo, misfit_and_backward,
                 history, bar, t0):
-    """The affine stage: ``settings.affine_steps`` Adam steps on the six parameters of
+    """The affine stage: ``settings.affine_steps`` Adam steps on the five parameters of
     :func:`affine_vertices` (and the log-albedo) against the envelopes. Returns (vertices
     [V, 3], log-albedo, the fit {'pivot', 'half', 'log_scale', 'scale', 'shift'}); one
     record per step is appended to ``history``."""
@@ -744,8 +745,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
     history, step, order = [], 0, np.arange(n_batches)
     bar = progress_bar(settings.support_steps + settings.affine_steps + sum(n for _, n in plan),
-                       progress, unit="step",
-                       desc="refine")
+                       progress, unit="step", desc="refine")
     t0 = time.perf_counter()
     support = affine = None
 
