@@ -10,7 +10,7 @@ seconds (wall, best of --repeats after one warm-up) and CPU seconds (user+sys of
 for the forward render and for forward + backward. ``--patch-size``: the support stage's
 scene instead (the mesh cut into patches of that size, one albedo each; the backward pass
 then also yields the per-patch albedo gradients), with its scene-building time. ``--affine``:
-the affine stage's step instead (the vertices a function of its six parameters, the
+the affine stage's step instead (the vertices a function of its five parameters, the
 gradient carried back to them). On a shared machine report CPU time.
 """
 from __future__ import annotations
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     p.add_argument("--patch-size", type=float, default=None,
                    help="measure the support stage's patch scene (patch size, m)")
     p.add_argument("--affine", action="store_true",
-                   help="measure the affine stage's step (gradient of its six parameters)")
+                   help="measure the affine stage's step (gradient of its five parameters)")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)

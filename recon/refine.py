@@ -24,7 +24,7 @@ the rendered waveforms match the dataset's:
   (UniformAdam, the tutorial's choice, on request); the mesh is remeshed isotropically
   (``gpytoolbox.remesh_botsch``, Botsch & Kobbelt 2004) at the start and, with
   ``remesh_every``, between segments, which keeps the triangles well shaped.
-* **Affine stage** (first, ``affine_steps``): the whole start is scaled per axis about its
+* **Affine stage** (optional, ``affine_steps``): the whole start is scaled per axis about its
   base and shifted horizontally (five parameters, :func:`affine_vertices`) by the envelope
   misfit before any vertex moves alone: a thresholded volume's surface sits a few
   millimetres off the truth by the same amount over a whole face (the τ-cut of the blurred
