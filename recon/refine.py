@@ -677,6 +677,12 @@ class _Objective:
 
 # ------------------------------------------------------------------------ the solver
 
+def _cosine_rate(lr: float, frac: float) -> float:
+    """The step of a stage at ``frac`` ∈ [0, 1] of its steps: ``lr`` decaying to ``lr``/10
+    along a half cosine."""
+    return lr * (0.1 + 0.45 * (1 + np.cos(np.pi * frac)))
+
+
 def _fit_affine(model, vertices, log_albedo, settings, fit_albedo, misfit_and_backward,
                 history, bar, t0):
     """The affine stage: ``settings.affine_steps`` Adam steps on the five parameters of
@@ -693,7 +699,7 @@ def _fit_affine(model, vertices, log_albedo, settings, fit_albedo, misfit_and_ba
     opt_rho["log_albedo"] = mi.Float(log_albedo)
     n = settings.affine_steps
     for j in range(n):
-        opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * j / max(1, n - 1)))))
+        opt.set_learning_rate(_cosine_rate(settings.lr, j / max(1, n - 1)))
         loss, alpha = misfit_and_backward(
             model, _affine_ad(mi, dr, v0, pivot, half, opt["log_scale"], opt["shift"]),
             dr.exp(opt_rho["log_albedo"]), "envelope")
@@ -743,7 +749,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     fit_albedo = settings.fit_albedo and ground is not None
     log_albedo = 0.0
     plan = [(s, n) for s, n in zip(STAGES, (settings.envelope_steps, settings.waveform_steps)) if n]
-    history, step, order = [], 0, np.arange(n_batches)
+    history, order = [], np.arange(n_batches)
     bar = progress_bar(settings.support_steps + settings.affine_steps + sum(n for _, n in plan),
                        progress, unit="step", desc="refine")
     t0 = time.perf_counter()
@@ -779,9 +785,9 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     loss, alpha = misfit_and_backward(model, v_fixed, dr.exp(opt_rho["log_albedo"]),
                                                       "envelope")
                     opt_rho.step()
-                    history.append({"step": step, "stage": "support", "loss": loss, "alpha": alpha,
-                                    "albedo": None, "seconds": time.perf_counter() - t0})
-                    step += 1
+                    history.append({"step": len(history), "stage": "support", "loss": loss,
+                                    "alpha": alpha, "albedo": None,
+                                    "seconds": time.perf_counter() - t0})
                     bar.update(1)
                 patch_albedo = np.exp(np.asarray(opt_rho["log_albedo"].numpy(), np.float64))
                 keep = supported_faces(vertices, faces, labels, patch_albedo, settings.support_keep)
@@ -808,7 +814,6 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                                   window, ground, settings, workdir),
                     vertices, log_albedo, settings, fit_albedo, misfit_and_backward, history,
                     bar, t0)
-                step = len(history)
                 if log is not None:
                     recent = [h["loss"] for h in history[-min(settings.affine_steps, 2 * n_batches):]]
                     log(f"affine steps {settings.affine_steps}: loss {np.mean(recent):.4f}, scale "
@@ -819,7 +824,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                 while done < n_steps:
                     seg = n_steps - done if not settings.remesh_every else min(
                         settings.remesh_every, n_steps - done)
-                    if step > 0 and history[-1]["stage"] not in ("support", "affine"):
+                    if history and history[-1]["stage"] not in ("support", "affine"):
                         vertices, faces = remesh(vertices, faces, settings.edge_length)
                     model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
                                           window, ground, settings, workdir)
@@ -831,7 +836,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     opt_rho["log_albedo"] = mi.Float(log_albedo)
                     for j in range(seg):
                         frac = (done + j) / max(1, n_steps - 1)
-                        opt.set_learning_rate(settings.lr * (0.1 + 0.45 * (1 + np.cos(np.pi * frac))))
+                        opt.set_learning_rate(_cosine_rate(settings.lr, frac))
                         blur_m = settings.envelope_blur * (1 - frac) if stage == "envelope" else 0.0
                         loss, alpha = misfit_and_backward(model, ls.from_differential(opt["u"]),
                                                           dr.exp(opt_rho["log_albedo"]), stage,
@@ -839,11 +844,10 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                         opt.step()
                         if fit_albedo:
                             opt_rho.step()
-                        history.append({"step": step, "stage": stage, "loss": loss,
+                        history.append({"step": len(history), "stage": stage, "loss": loss,
                                         "alpha": alpha, "blur_m": blur_m,
                                         "albedo": float(dr.exp(opt_rho["log_albedo"])[0]),
                                         "seconds": time.perf_counter() - t0})
-                        step += 1
                         bar.update(1)
                     vertices = np.asarray(ls.from_differential(opt["u"]).numpy(),
                                           np.float64).reshape(-1, 3)
