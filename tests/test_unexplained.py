@@ -84,11 +84,11 @@ def test_the_unexplained_image_finds_the_ball_the_mesh_lacks(mi, snowman_scan):
     ds = SonarDataset.read(snowman_scan)
     grid, settings = _grid(), RefineSettings(surface_spacing=2e-3)
     pings = np.arange(ds.n_pings)
-    big_only, share_big = unexplained.unexplained_image(ds, _ball(*BIG), 1.0, grid, pings,
-                                                        settings, None)
+    found = unexplained.unexplained_image(ds, _ball(*BIG), 1.0, grid, pings, settings, None)
+    big_only, share_big = found.image, found.share
     both_mesh = trimesh.util.concatenate([_ball(*BIG), _ball(*SMALL)])
-    both, share_both = unexplained.unexplained_image(ds, both_mesh, 1.0, grid, pings,
-                                                     settings, None)
+    both, share_both = (lambda f: (f.image, f.share))(unexplained.unexplained_image(
+        ds, both_mesh, 1.0, grid, pings, settings, None))
     axes = voxel_axes(grid.bounds, grid.shape)
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
     near_small = (_distance_to_sphere(points, SMALL) < 0.01) & (points[..., 2] > 0.09)
@@ -99,6 +99,16 @@ def test_the_unexplained_image_finds_the_ball_the_mesh_lacks(mi, snowman_scan):
     assert near_small[strong].mean() > 0.7
     assert both[near_small].max() < 0.1 * big_only[near_small].max()
     assert share_both < 0.05 * share_big
+    # the halves: the two lower rings (the median's ties) against the top one; their coherent
+    # sum is the image, and each images the small ball (seen from every height) well above
+    # its share of the level, so its part is kept
+    assert found.lower_fraction == pytest.approx(2 / 3) and 0 < found.split_deg < 30
+    lower, upper = found.lower, found.upper
+    assert np.all(lower + upper >= big_only - 1e-5)
+    ball = unexplained.consistent_parts(near_small & (big_only > 0.5 * big_only.max()), found,
+                                        0.5 * big_only.max())
+    assert ball.any() and ball.sum() == (near_small & (big_only > 0.5 * big_only.max())).sum()
+    assert min(lower[near_small].max(), upper[near_small].max()) > 0.3 * big_only.max()
 
 
 def test_grown_voxels_add_the_far_parts_not_the_layer_around_the_start():
@@ -122,6 +132,54 @@ def test_grown_voxels_add_the_far_parts_not_the_layer_around_the_start():
     high = unexplained.grown_voxels(vol, bounds, 0.5, 0.0, image, 0.7, beyond=0.025)
     assert high.sum() == 8 and high[2:4, 2:4, 20:22].all()
     assert not unexplained.grown_voxels(vol, bounds, 0.5, 0.215, image, 0.7, beyond=0.025).any()
+
+
+def _found(lower, upper, fraction=0.5):
+    return unexplained.UnexplainedImage(image=lower + upper, lower=lower, upper=upper,
+                                        lower_fraction=fraction, split_deg=10.0, share=0.3)
+
+
+def test_consistent_parts_keep_what_both_elevation_halves_image():
+    """Three parts proposed at level 0.2: one imaged by both halves (0.15 and 0.12), one by the
+    lower half alone (0.5, upper 0.02: a face's flash), one by the upper alone: only the first
+    is kept, whole (its weak voxels too). With unequal halves the bar scales with each share;
+    with no halves (one elevation) everything is kept."""
+    shape = (20, 20, 20)
+    lower, upper = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    added = np.zeros(shape, bool)
+    added[2:5, 2:5, 2:5] = added[10:13, 2:5, 2:5] = added[2:5, 10:13, 10:13] = True
+    lower[2:5, 2:5, 2:5], upper[2:5, 2:5, 2:5] = 0.05, 0.05
+    lower[3, 3, 3], upper[2, 4, 4] = 0.15, 0.12
+    lower[10:13, 2:5, 2:5], upper[10:13, 2:5, 2:5] = 0.5, 0.02
+    lower[2:5, 10:13, 10:13], upper[2:5, 10:13, 10:13] = 0.03, 0.6
+    kept = unexplained.consistent_parts(added, _found(lower, upper), 0.2)
+    assert kept[2:5, 2:5, 2:5].all() and kept.sum() == 27
+    # a quarter of the pings below: the lower bar 0.05, the upper 0.15 (not met by 0.12)
+    assert not unexplained.consistent_parts(added, _found(lower, upper, 0.25), 0.2).any()
+    assert unexplained.consistent_parts(added, _found(lower, upper, 0.75), 0.2).sum() == 27
+    none = unexplained.UnexplainedImage(lower + upper, None, None, 1.0, None, 0.3)
+    assert (unexplained.consistent_parts(added, none, 0.2) == added).all()
+
+
+def test_elevation_halves_split_at_the_median_elevation_seen_from_the_grid():
+    """Pings at three heights around a grid centred at z = 0.1 m: the lower half holds the
+    lowest ring and the median ring's ties; one height only → None; all but one at the lowest
+    elevation → the ties cannot go below, the upper half keeps the one."""
+    import types
+    grid = types.SimpleNamespace(bounds=np.array([[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.2]]))
+    az = np.radians(np.tile(np.arange(0, 360, 60.0), 3))
+    z = np.repeat([0.0, 0.1, 0.5], 6)
+    tx = np.stack([np.cos(az), np.sin(az), z], axis=1)
+    ds = types.SimpleNamespace(tx=tx, rx=tx + [0.0, 0.0, 0.02])
+    lower, split = unexplained.elevation_halves(ds, np.arange(18), grid)
+    assert lower.tolist() == [True] * 12 + [False] * 6
+    assert np.degrees(split) == pytest.approx(np.degrees(np.arctan2(0.01, 1.0)))
+    flat = types.SimpleNamespace(tx=tx[:6], rx=tx[:6])
+    assert unexplained.elevation_halves(flat, np.arange(6), grid) is None
+    lopsided = types.SimpleNamespace(tx=tx[:7], rx=tx[:7])
+    lower, split = unexplained.elevation_halves(lopsided, np.arange(7), grid)
+    assert lower.tolist() == [True] * 6 + [False]
+    assert np.degrees(split) == pytest.approx(np.degrees(np.arctan2(-0.1, 1.0)))
 
 
 def _volume_of(balls, grid, path):
@@ -167,6 +225,7 @@ def test_refine_command_adds_and_keeps_the_start_grown_by_the_unexplained_data(
     assert len(trimesh.load(out).faces) == cands[1]["faces"]
     found = record["unexplained"]
     assert found["level"] == 0.12 and found["voxels_added"] > 0 and 0 < found["share"] < 1
+    assert found["voxels_proposed"] >= found["voxels_added"] and found["split_elevation_deg"] > 0
     from sonarsim.dataset import Volume
     image = Volume.read(tmp_path / "refined.unexplained.h5")
     assert image.method == "unexplained" and image.volume.shape == _grid().shape

@@ -92,7 +92,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the kept one leaves unexplained (backprojection of the data where "
                              "its rendered envelope falls short, relative to the data's own "
                              "image), add its parts above LEVEL that reach beyond one range "
-                             "resolution from the start, refine that start too and keep it if "
+                             "resolution from the start and that both elevation halves of the "
+                             "scan image, refine that start too and keep it if "
                              "its envelope misfit is lower; 0: off (default "
                              f"{DEFAULT_UNEXPLAINED:g}; docs/refine.md 'Grown from the "
                              "unexplained data')")
@@ -266,38 +267,46 @@ def unexplained_level(args) -> float:
 def grown_start(args, dataset, chosen: dict, result, settings, index, level: float):
     """(start, record): the kept candidate's start grown by the data it leaves unexplained
     (``{"wrap", "smooth", "grown", "mesh"}``, None when the unexplained image adds nothing) and
-    what was found (``{"level", "share", "voxels_added", "beyond_m", "image"}``, the image a
-    :class:`~sonarsim.dataset.Volume` on ``--init``'s grid): the voxels of
-    :func:`recon.unexplained.unexplained_image` (of the refined mesh ``result``) that
-    :func:`recon.unexplained.grown_voxels` adds at ``level`` are united with ``--init``'s
-    occupied set, which then gets the kept start's wrap or smoothing."""
+    what was found (``{"level", "share", "voxels_proposed", "voxels_added", "beyond_m",
+    "split_elevation_deg", "image"}``, the image a :class:`~sonarsim.dataset.Volume` on
+    ``--init``'s grid): the voxels of :func:`recon.unexplained.unexplained_image` (of the
+    refined mesh ``result``) that :func:`recon.unexplained.grown_voxels` proposes at ``level``,
+    in parts that both elevation halves image (:func:`recon.unexplained.consistent_parts`), are
+    united with ``--init``'s occupied set, which then gets the kept start's wrap or
+    smoothing."""
     import numpy as np
     from sonarsim.dataset import Volume
 
     from ..grid import Grid
     from ..refine import dataset_ground, range_resolution, smoothed_start
-    from ..unexplained import (UNEXPLAINED_BEYOND, grown_voxels, residual_pings,
-                               unexplained_image)
+    from ..unexplained import (UNEXPLAINED_BEYOND, consistent_parts, grown_voxels,
+                               residual_pings, unexplained_image)
     vol = Volume.read(args.init)
     index = np.arange(dataset.n_pings) if index is None else np.asarray(index)
     ground = None if args.no_ground else dataset_ground(dataset)
     n_pings = len(residual_pings(index))
     print(f"unexplained: rendering the kept candidate for {n_pings} pings and imaging what it "
           "leaves unexplained")
-    image, share = unexplained_image(dataset, result.mesh,
-                                     1.0 if result.albedo is None else result.albedo,
-                                     Grid(vol.bounds, vol.volume.shape), index, settings, ground,
-                                     settings.seed)
+    found = unexplained_image(dataset, result.mesh,
+                              1.0 if result.albedo is None else result.albedo,
+                              Grid(vol.bounds, vol.volume.shape), index, settings, ground,
+                              settings.seed)
     beyond = UNEXPLAINED_BEYOND * range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
-    added = grown_voxels(vol.volume, vol.bounds, args.threshold, args.z_min, image, level, beyond)
-    print(f"unexplained: {share:.1%} of the data's envelope energy; {int(added.sum())} voxels "
-          f"of its image above {level:g} of the data's peak reach beyond {beyond * 1e3:.1f} mm "
-          "of the start")
-    record = {"level": level, "share": share, "voxels_added": int(added.sum()),
-              "beyond_m": beyond,
-              "image": Volume(volume=image.astype(np.complex64), bounds=vol.bounds,
+    proposed = grown_voxels(vol.volume, vol.bounds, args.threshold, args.z_min, found.image,
+                            level, beyond)
+    added = consistent_parts(proposed, found, level)
+    print(f"unexplained: {found.share:.1%} of the data's envelope energy; {int(proposed.sum())} "
+          f"voxels of its image above {level:g} of the data's peak reach beyond "
+          f"{beyond * 1e3:.1f} mm of the start"
+          + ("" if found.split_deg is None else
+             f"; {int(added.sum())} of them in parts that both elevation halves image "
+             f"(split at {found.split_deg:.1f} deg)"))
+    record = {"level": level, "share": found.share, "voxels_proposed": int(proposed.sum()),
+              "voxels_added": int(added.sum()), "beyond_m": beyond,
+              "split_elevation_deg": found.split_deg,
+              "image": Volume(volume=found.image.astype(np.complex64), bounds=vol.bounds,
                               method="unexplained",
-                              params={"level": level, "share": share,
+                              params={"level": level, "share": found.share,
                                       "pings": n_pings})}
     if not added.any():
         return None, record
