@@ -106,9 +106,8 @@ def elevation_halves(dataset, pings: np.ndarray, grid) -> tuple[np.ndarray, floa
     """(lower bool [n], split in rad) for the pings ``pings``: those whose TX–RX midpoint is seen
     from the grid's centre at an elevation at or below the median, the rest upper; None when
     every ping has the same elevation (to ``ELEVATION_TIE``: no elevation aperture to split).
-    The split is the highest lower elevation. With many
-    pings at the median elevation the ties go to the lower half unless that leaves the upper
-    one empty."""
+    Pings at the median elevation go to the lower half unless that leaves the upper one empty;
+    the split returned is the highest elevation in the lower half."""
     tx, rx = (np.asarray(getattr(dataset, k), np.float64)[pings] for k in ("tx", "rx"))
     mid = 0.5 * (tx + rx) - np.asarray(grid.bounds, np.float64).mean(axis=1)
     elevation = np.arctan2(mid[:, 2], np.hypot(mid[:, 0], mid[:, 1]))
