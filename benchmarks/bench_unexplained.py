@@ -1,6 +1,7 @@
 """Cost of `recon refine`'s unexplained image (``recon.unexplained.unexplained_image``):
-rendering the kept mesh for the imaged pings, the weights, and the two coherent
-backprojections — against a straightforward NumPy backprojection of the same signals.
+rendering the kept mesh for the imaged pings, the weights, and the coherent backprojections
+(the data over all the pings, the unexplained signal over each elevation half) — against a
+straightforward NumPy backprojection of the same signals.
 
     python benchmarks/bench_unexplained.py DATASET.h5 [--pings 2160] [--shape 125 125 94]
         [--numpy-pings 16] [--edge-length 0.008] [--out result.json]
@@ -79,9 +80,13 @@ def main(argv=None) -> int:
     sub = dataclasses.replace(ds.select(pings), waveforms=u.astype(np.complex64),
                               waveform_kind=measurements.DECONVOLVED)
     backprojection.backproject(sub.select(np.arange(4)), grid, progress=False)   # compile once
+    halves = unexplained.elevation_halves(ds, pings, grid)
+    lower = np.ones(len(pings), bool) if halves is None else halves[0]
+    parts = [(z, np.ones(len(pings), bool)), (u, lower)] + ([] if halves is None else [(u, ~lower)])
     _, w_bp, c_bp = timed(lambda: [backprojection.backproject(
-        dataclasses.replace(sub, waveforms=s.astype(np.complex64)), grid, progress=False)
-        for s in (z, u)])
+        dataclasses.replace(sub.select(np.flatnonzero(rows)),
+                            waveforms=s[rows].astype(np.complex64)), grid, progress=False)
+        for s, rows in parts])
     few = sub.select(np.arange(min(args.numpy_pings, len(pings))))
     _, w_np, c_np = timed(lambda: straightforward.backproject_numpy(few, grid))
     _, w_jit_few, c_jit_few = timed(lambda: backprojection.backproject(few, grid, progress=False))
