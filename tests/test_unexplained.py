@@ -237,3 +237,50 @@ def test_refine_command_adds_and_keeps_the_start_grown_by_the_unexplained_data(
         assert main([*args, "--force", *extra]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_refine_command_resumes_from_its_checkpoint(snowman_scan, tmp_path, capsys):
+    """--checkpoint DIR keeps each refined candidate as it finishes; after an interruption (the
+    grown candidate's record not yet written) --resume loads the first candidate, refines the
+    grown one again and writes the same mesh and history as the run that was not
+    interrupted, byte for byte. Another run's directory, a directory holding a run without
+    --resume or --force, and --resume without --checkpoint are refused in one line."""
+    import json
+
+    from recon.cli import main
+    init = _volume_of([BIG], _grid(), tmp_path / "big.h5")
+    ck = tmp_path / "ck"
+    args = ["refine", str(snowman_scan), "--init", str(init), "--no-ground", "--wrap", "0",
+            "--smooth", "0", "--affine-steps", "0", "--envelope-steps", "8",
+            "--waveform-steps", "0", "--lr", "1e-3", "--pings-per-batch", "36",
+            "--edge-length", "0.01", "--surface-spacing", "0.003", "--no-progress",
+            "--grow-unexplained", "0.12", "--threads", "1"]    # one thread: the same sums
+    run = [*args, "--checkpoint", str(ck)]
+
+    def outputs(tag):
+        return ["--out", str(tmp_path / f"{tag}.ply"), "--history", str(tmp_path / f"{tag}.json")]
+    assert main([*run, *outputs("whole")]) == 0
+    assert sorted(p.name for p in ck.iterdir()) == ["grown-wrap0.json", "grown-wrap0.npz",
+                                                    "identity.json", "wrap0.json", "wrap0.npz"]
+    (ck / "grown-wrap0.json").unlink()
+    capsys.readouterr()
+    assert main([*run, *outputs("resumed"), "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert "start wrap0: resumed from" in printed and "grown-wrap0: resumed" not in printed
+    assert "start grown-wrap0: envelope misfit" in printed
+    assert (tmp_path / "whole.ply").read_bytes() == (tmp_path / "resumed.ply").read_bytes()
+    whole, resumed = (json.loads((tmp_path / f"{t}.json").read_text())
+                      for t in ("whole", "resumed"))
+    for record in (whole, resumed):             # the wall time of each step is not the same
+        for step in record["history"]:
+            del step["seconds"]
+    assert whole == resumed and whole["grown"] == 0.12
+    for extra, words in (
+            (["--resume", "--lr", "2e-3"], "holds another run"),
+            ([], "holds a run; pass --resume to continue it or --force"),
+            (["--checkpoint", str(init)], "is not a directory")):
+        assert main([*run, *outputs("bad"), *extra]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main([*args, *outputs("bad"), "--resume"]) == 2
+    assert "--resume needs --checkpoint DIR" in capsys.readouterr().err

@@ -110,6 +110,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--history", type=Path, default=None,
                         help="also write the per-step record (loss, scale, albedo, time) as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--checkpoint", type=Path, default=None, metavar="DIR",
+                        help="keep each candidate's refinement in DIR as it finishes "
+                             "(DIR/LABEL.npz, .json; DIR/identity.json names the run)")
+    parser.add_argument("--resume", action="store_true",
+                        help="with --checkpoint: load the candidates already in DIR instead of "
+                             "refining them again (same dataset, --init, settings and options)")
     base = RefineSettings()
     for f in dataclasses.fields(RefineSettings):
         flag = "--" + f.name.replace("_", "-")
@@ -319,6 +325,20 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
     return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}, record
 
 
+def checkpoint_store(args, dataset, settings, level: float):
+    """The :class:`recon.refine_checkpoint.CandidateStore` of ``--checkpoint``: the run named
+    by the dataset, ``--init``, the settings and the options that decide the starts."""
+    from ..refine_checkpoint import CandidateStore, file_digest, run_identity
+    options = {"threshold": args.threshold, "z_min": args.z_min, "wrap": args.wrap,
+               "smooth": args.smooth, "grow_threshold": args.grow_threshold,
+               "grow_beyond": args.grow_beyond, "grow_unexplained": level,
+               "pings": args.pings, "no_ground": bool(args.no_ground),
+               "grow": None if args.grow is None else file_digest(args.grow)}
+    identity = run_identity(dataset, args.init, dataclasses.asdict(settings), options)
+    return CandidateStore(args.checkpoint, identity, args.resume,
+                          bool(getattr(args, "force", False)))
+
+
 def unexplained_path(out: Path) -> Path:
     """Where ``--keep-candidates`` writes the unexplained image (``OUT_STEM.unexplained.h5``)."""
     return out.with_name(f"{out.stem}.unexplained.h5")
@@ -331,8 +351,8 @@ def candidate_paths(out: Path, candidate: dict) -> tuple[Path, Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export import write_mesh
-    from ..refine import solve
+    if args.resume and args.checkpoint is None:
+        raise InputError("--resume needs --checkpoint DIR")
     settings = settings_from_args(args)
     if args.out.suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
         raise InputError(f"--out {args.out}: mesh format must be .ply, .obj, .stl or .off")
@@ -350,7 +370,21 @@ def run(args: argparse.Namespace) -> int:
             if path.resolve() in named:
                 raise InputError(f"--keep-candidates: {path} is also another output")
             check_output(path, force=bool(getattr(args, "force", False)),
-                         option="--keep-candidates")
+                         option="--keep-candidates", exists_ok=args.resume)
+    if args.checkpoint is None:
+        return refine_candidates(args, ds, settings, specs, level, None)
+    from sonarsim.outputs import output_lock
+    with output_lock(args.checkpoint):
+        return refine_candidates(args, ds, settings, specs, level,
+                                 checkpoint_store(args, ds, settings, level))
+
+
+def refine_candidates(args, ds, settings, specs: list, level: float, store) -> int:
+    """Refine every start of ``specs`` (then the grown one at ``level``), keep the one with
+    the lowest envelope misfit, write ``--out`` (and ``--history``, ``--keep-candidates``);
+    ``store``: the ``--checkpoint`` (:class:`recon.refine_checkpoint.CandidateStore`) or None."""
+    from ..export import write_mesh
+    from ..refine import solve
     starts = start_candidates(args, ds, settings.edge_length, specs)
     from ..checks import check_box_sees_data
     for start in starts:
@@ -363,9 +397,15 @@ def run(args: argparse.Namespace) -> int:
         init, name = start["mesh"], candidate_label(start)
         if several:
             print(f"start {name}: {len(init.faces)} faces")
-        res = solve(ds, init, settings, ping_index=index,
-                    ground=None if args.no_ground else "dataset",
-                    progress=not args.no_progress, log=print)
+        res = None if store is None else store.load(name)
+        if res is not None:
+            print(f"start {name}: resumed from {store.directory}")
+        else:
+            res = solve(ds, init, settings, ping_index=index,
+                        ground=None if args.no_ground else "dataset",
+                        progress=not args.no_progress, log=print)
+            if store is not None:
+                store.save(name, res)
         candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
                            "grown": start.get("grown", 0.0),
                            "final_misfit": res.final_misfit, "faces": len(res.faces),
