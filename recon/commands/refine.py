@@ -325,12 +325,14 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
     return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}, record
 
 
-def checkpoint_store(args, dataset, settings, level: float):
+def checkpoint_store(args, dataset, settings, specs: list, level: float):
     """The :class:`recon.refine_checkpoint.CandidateStore` of ``--checkpoint``: the run named
-    by the dataset, ``--init``, the settings and the options that decide the starts."""
+    by the dataset, ``--init``, the settings, the candidates ``specs`` and the options that
+    decide their starts."""
     from ..refine_checkpoint import CandidateStore, file_digest, run_identity
-    options = {"threshold": args.threshold, "z_min": args.z_min, "wrap": args.wrap,
-               "smooth": args.smooth, "grow_threshold": args.grow_threshold,
+    options = {"threshold": args.threshold, "z_min": args.z_min,
+               "starts": [candidate_label(spec) for spec in specs],
+               "grow_threshold": args.grow_threshold,
                "grow_beyond": args.grow_beyond, "grow_unexplained": level,
                "pings": args.pings, "no_ground": bool(args.no_ground),
                "grow": None if args.grow is None else file_digest(args.grow)}
@@ -376,7 +378,7 @@ def run(args: argparse.Namespace) -> int:
     from sonarsim.outputs import output_lock
     with output_lock(args.checkpoint):
         return refine_candidates(args, ds, settings, specs, level,
-                                 checkpoint_store(args, ds, settings, level))
+                                 checkpoint_store(args, ds, settings, specs, level))
 
 
 def refine_candidates(args, ds, settings, specs: list, level: float, store) -> int:
