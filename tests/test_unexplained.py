@@ -255,22 +255,25 @@ def test_refine_command_resumes_from_its_checkpoint(snowman_scan, tmp_path, caps
             "--waveform-steps", "0", "--lr", "1e-3", "--pings-per-batch", "36",
             "--edge-length", "0.01", "--surface-spacing", "0.003", "--no-progress",
             "--grow-unexplained", "0.12", "--threads", "1"]    # one thread: the same sums
-    run = [*args, "--checkpoint", str(ck)]
+    run = [*args, "--checkpoint", str(ck), "--keep-candidates"]
 
     def outputs(tag):
         return ["--out", str(tmp_path / f"{tag}.ply"), "--history", str(tmp_path / f"{tag}.json")]
     assert main([*run, *outputs("whole")]) == 0
     assert sorted(p.name for p in ck.iterdir()) == ["grown-wrap0.json", "grown-wrap0.npz",
                                                     "identity.json", "wrap0.json", "wrap0.npz"]
-    (ck / "grown-wrap0.json").unlink()
+    mesh, history = ((tmp_path / f"whole.{e}").read_bytes() for e in ("ply", "json"))
+    # interrupted during the grown candidate: no record of it, no --out, no --history; the
+    # finished candidates' --keep-candidates files are there (and may be written again)
+    for done in (ck / "grown-wrap0.json", tmp_path / "whole.ply", tmp_path / "whole.json"):
+        done.unlink()
     capsys.readouterr()
-    assert main([*run, *outputs("resumed"), "--resume"]) == 0
+    assert main([*run, *outputs("whole"), "--resume"]) == 0
     printed = capsys.readouterr().out
     assert "start wrap0: resumed from" in printed and "grown-wrap0: resumed" not in printed
     assert "start grown-wrap0: envelope misfit" in printed
-    assert (tmp_path / "whole.ply").read_bytes() == (tmp_path / "resumed.ply").read_bytes()
-    whole, resumed = (json.loads((tmp_path / f"{t}.json").read_text())
-                      for t in ("whole", "resumed"))
+    assert (tmp_path / "whole.ply").read_bytes() == mesh
+    whole, resumed = json.loads(history), json.loads((tmp_path / "whole.json").read_text())
     for record in (whole, resumed):             # the wall time of each step is not the same
         for step in record["history"]:
             del step["seconds"]
