@@ -757,6 +757,10 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
 
     samples_per_metre = 2.0 * float(dataset.fs) / float(dataset.sound_speed)   # one-way range
 
+    def recent_loss(n_steps: int) -> float:
+        """Mean loss of the last ``n_steps`` steps, at most two passes over the batches (logs)."""
+        return float(np.mean([h["loss"] for h in history[-min(n_steps, 2 * n_batches):]]))
+
     def misfit_and_backward(model, vertices_ad, albedo_ad, stage, sigma=0.0):
         """One step's misfit (loss, alpha) of the next batch (a new batch order per pass over
         the batches) and its gradient propagated to ``vertices_ad`` and ``albedo_ad``."""
@@ -804,8 +808,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                                model_vertices, model_faces, labels, model.n_patches)]}
                 del model
                 if log is not None:
-                    recent = [h["loss"] for h in history[-min(settings.support_steps, 2 * n_batches):]]
-                    log(f"support steps {settings.support_steps}: loss {np.mean(recent):.4f}, kept "
+                    log(f"support steps {settings.support_steps}: loss "
+                        f"{recent_loss(settings.support_steps):.4f}, kept "
                         f"{support['patches_kept']}/{support['patches']} patches, "
                         f"{len(faces)}/{n_before} faces, {time.perf_counter() - t0:.0f} s")
             if settings.affine_steps:
@@ -815,8 +819,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     vertices, log_albedo, settings, fit_albedo, misfit_and_backward, history,
                     bar, t0)
                 if log is not None:
-                    recent = [h["loss"] for h in history[-min(settings.affine_steps, 2 * n_batches):]]
-                    log(f"affine steps {settings.affine_steps}: loss {np.mean(recent):.4f}, scale "
+                    log(f"affine steps {settings.affine_steps}: loss "
+                        f"{recent_loss(settings.affine_steps):.4f}, scale "
                         f"{np.round(affine['scale'], 4).tolist()}, shift "
                         f"{np.round(affine['shift'], 4).tolist()} m, {time.perf_counter() - t0:.0f} s")
             for stage, n_steps in plan:
@@ -855,8 +859,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     log_albedo = float(opt_rho["log_albedo"][0])
                     done += seg
                     if log is not None:
-                        recent = [h["loss"] for h in history[-min(seg, 2 * n_batches):]]
-                        log(f"{stage} steps {done}/{n_steps}: loss {np.mean(recent):.4f}, "
+                        log(f"{stage} steps {done}/{n_steps}: loss {recent_loss(seg):.4f}, "
                             f"{len(faces)} faces, {time.perf_counter() - t0:.0f} s")
         finally:
             bar.close()

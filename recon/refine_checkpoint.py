@@ -92,6 +92,7 @@ class CandidateStore:
         """Write candidate ``label``'s result (arrays first, the record last: a candidate
         counts as finished once its record exists)."""
         from sonarsim.atomic import atomic_path
+        from sonarsim.dataset.attributes import json_default
         arrays, record = self._paths(label)
         with atomic_path(arrays) as tmp:
             with open(tmp, "wb") as fh:
@@ -100,13 +101,5 @@ class CandidateStore:
         with atomic_path(record) as tmp:
             tmp.write_text(json.dumps({"albedo": result.albedo, "history": result.history,
                                        "settings": result.settings, "affine": result.affine},
-                                      default=_plain))
+                                      default=json_default))
 
-
-def _plain(value):
-    """JSON for the NumPy scalars and arrays a result's records may hold."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot write {type(value).__name__} to JSON")
