@@ -446,18 +446,34 @@ def _half_edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return a, b, np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
 
 
-def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float
-           ) -> tuple[np.ndarray, np.ndarray]:
+CREASE_ANGLE = 40.0     # degrees between adjacent faces' normals: a crease remeshing keeps
+
+
+def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
+           keep_creases: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Isotropic remeshing to ``edge_length`` (gpytoolbox.remesh_botsch, 5 iterations) of
     the :func:`manifold` part of the mesh (remesh_botsch refuses non-manifold input, and its
-    own output, from which later stages start, may have a few non-manifold edges)."""
+    own output, from which later stages start, may have a few non-manifold edges).
+
+    keep_creases: keep the edges where the faces' normals turn by more than
+    :data:`CREASE_ANGLE` sharp (remesh_botsch's feature edges: split along the crease, never
+    flipped). Without it the remeshing cuts every sharp edge by up to half an edge length; on
+    a box the bevels change the echoes more than millimetres of face position do
+    (docs/refine.md "Creases"). For a given mesh (``recon refine --init MESH``), not for the
+    iso-surface of a volume, whose voxel steps would count as creases."""
     from gpytoolbox import remesh_botsch
+    if keep_creases:      # welded, so that a face's neighbours across a crease are known
+        import trimesh
+        welded = trimesh.Trimesh(vertices, faces, process=True)
+        vertices, faces = welded.vertices, welded.faces
     vertices, faces = manifold(vertices, faces)
     if len(faces) == 0:
         raise InputError("cannot remesh the surface: no face is left on a manifold part")
     try:
         v, f = remesh_botsch(np.asarray(vertices, np.float64), np.asarray(faces, np.int32),
-                             i=5, h=float(edge_length), project=True)
+                             i=5, h=float(edge_length), project=True,
+                             detect_feature_edges=bool(keep_creases),
+                             feature_dihedral_threshold=CREASE_ANGLE)
     except ValueError as exc:
         raise InputError(f"cannot remesh the surface ({exc}): it has edges shared by more "
                          "than two faces") from None
@@ -719,12 +735,13 @@ def _fit_affine(model, vertices, log_albedo, settings, fit_albedo, misfit_and_ba
 
 def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSettings(), *,
           ping_index: np.ndarray | None = None, ground="dataset", progress: bool = False,
-          log=None) -> RefineResult:
+          log=None, keep_creases: bool = False) -> RefineResult:
     """Refine ``init`` (a trimesh, metres) against ``dataset`` (real waveforms).
 
     ping_index: the pings to fit (default all); ground: 'dataset' (:func:`dataset_ground`),
     None (no ground), or (size_x, size_y, albedo). log: callable(str), one line per
-    remeshing segment.
+    remeshing segment. keep_creases: the remeshings keep ``init``'s sharp edges
+    (:func:`remesh`; for a given mesh, not a volume's iso-surface).
     """
     import tempfile
 
@@ -741,7 +758,7 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
     ground = dataset_ground(dataset) if ground == "dataset" else ground
     k, window, chain = dataset_chain(dataset, settings)
     objective = _Objective(dataset, chain)
-    vertices, faces = remesh(init.vertices, init.faces, settings.edge_length)
+    vertices, faces = remesh(init.vertices, init.faces, settings.edge_length, keep_creases)
 
     n_batches = max(1, int(np.ceil(len(index) / settings.pings_per_batch)))
     rng = np.random.default_rng(settings.seed)
@@ -829,7 +846,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                     seg = n_steps - done if not settings.remesh_every else min(
                         settings.remesh_every, n_steps - done)
                     if history and history[-1]["stage"] not in ("support", "affine"):
-                        vertices, faces = remesh(vertices, faces, settings.edge_length)
+                        vertices, faces = remesh(vertices, faces, settings.edge_length,
+                                                 keep_creases)
                     model = RenderedScene(trimesh.Trimesh(vertices, faces, process=False), dataset,
                                           window, ground, settings, workdir)
                     v0, f0 = model.vertices

@@ -172,6 +172,14 @@ def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> li
              if spec["smooth"] else starts[spec["wrap"]]} for spec in specs]
 
 
+def keeps_creases(args, start: dict) -> bool:
+    """Whether ``start``'s remeshing keeps its sharp edges: the given mesh of a mesh
+    ``--init`` does (a CAD model's box stays a box), a volume's iso-surface (its voxel steps)
+    and the smoothed or grown starts do not (:func:`recon.refine.remesh`)."""
+    return (args.init.suffix.lower() != ".h5" and not start["smooth"]
+            and not start.get("grown"))
+
+
 def candidate_specs(args) -> list[dict]:
     """``[{"wrap": K, "smooth": L}]``, the candidates ``--wrap``, ``--smooth`` and ``--init``
     ask for, before any mesh is made (so that bad values and existing outputs are refused
@@ -405,7 +413,8 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
         else:
             res = solve(ds, init, settings, ping_index=index,
                         ground=None if args.no_ground else "dataset",
-                        progress=not args.no_progress, log=print)
+                        progress=not args.no_progress, log=print,
+                        keep_creases=keeps_creases(args, start))
             if store is not None:
                 store.save(name, res)
         candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
