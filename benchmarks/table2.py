@@ -28,9 +28,16 @@ job's simulation by its parameters (poses, pulse, scene, recorded settings:
 * ``table2.csv`` -- every cell, both protocols, machine readable; plus the published rows;
 * ``table2.png`` -- per shape: GT render, and per method the MIP over y and a render of the
                     τ = 0.2 surface side by side;
-* ``table2.json`` -- settings, every cell, timings (stage times per cell: dataset,
+* ``table2.json`` -- settings, every cell (``cells``), timings (stage times per cell: dataset,
                     deconvolve, solve, evaluate; the run prints their sums, its wall and CPU time);
-* ``batch/``      -- the manifest, the batch's ``batch.csv``, datasets, volumes, metrics.
+                    the NBP + refine rows (``refined``);
+* ``batch/``      -- the manifest, the batch's ``batch.csv``, datasets, volumes, metrics, and
+                    the refined meshes beside the NBP volumes they start from.
+
+After the batch, each main NBP cell's solid is refined through the renderer (``recon refine``
+with its defaults, the quick size with a few steps; :func:`refine_results`): the row "NBP +
+recon refine", the project's whole pipeline, which the paper does not have (``--no-refine``
+leaves it out).
 
     .venv/bin/python benchmarks/table2.py --out bench_out/table2 [--quick] [--methods bp,pfa]
 """
@@ -41,6 +48,7 @@ import csv
 import importlib
 import json
 import math
+import os
 import resource
 import sys
 import time
@@ -109,6 +117,8 @@ class Settings:
     ``figure_resolution`` / ``figure_dpi``: the render size and dpi of ``table2.png``.
     ``solver_output``: what GD and NBP export ('field': the fitted field, e.g. to apply another
     solid extraction post hoc; 'solid'; None: their preset's).
+    ``refine_options``: the ``recon refine`` options of the NBP + refine row (() = the
+    command's defaults; the quick size runs a few steps on a quarter of the pings).
     """
     angle_step: int
     height_step: int
@@ -127,6 +137,8 @@ class Settings:
     solver_output: str | None = None  # GD/NBP 'output' ('field' or 'solid'); None: the preset's
     figure_resolution: int = 160      # table2.png: render size (pixels) and dpi
     figure_dpi: int = 100
+    refine_options: tuple[str, ...] = ()   # `recon refine` options of the NBP + refine row
+                                           # (() = the command's defaults)
 
     @property
     def n_poses(self) -> int:
@@ -166,7 +178,10 @@ SIZES = {
                       gd_iterations=5, nbp_iterations=3, samples=1000, volume_samples=3000,
                       view_resolution=32, sweep_methods=("pfa",), threshold_sweep=False,
                       nbp_warm_start_iterations=5, surface_spacing=0.016,
-                      figure_resolution=48, figure_dpi=50),
+                      figure_resolution=48, figure_dpi=50,
+                      refine_options=("--pings", "::4", "--envelope-steps", "2",
+                                      "--waveform-steps", "1", "--wrap", "0", "--smooth", "0",
+                                      "--grow-unexplained", "0", "--edge-length", "0.02")),
 }
 
 
@@ -203,6 +218,9 @@ METHODS = (
                       **({} if s.solver_output is None else {"output": s.solver_output})}, True),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
+# Not a batch method: ``recon refine`` of each main NBP cell's solid, after the batch
+# (:func:`refine_results`); no published row (the paper has no refinement).
+REFINE = Method("refine", "NBP + recon refine")
 
 
 @dataclass(frozen=True)
@@ -613,6 +631,116 @@ def cell_result(cell: Cell, job, label: str, settings: Settings, notes: list[str
                              "evaluate_s": sum(evaluate_cpu) if evaluate_cpu else None}}
 
 
+# ------------------------------------------------------------- the NBP + refine row
+
+def refine_key(options: tuple[str, ...]) -> str:
+    """Digest of what a refinement depends on besides its dataset and NBP solid: the options
+    and the command's defaults in code (a changed default makes new files, as a changed
+    preset does for the batch's cells)."""
+    from recon.commands import refine as command
+    from recon.refine import RefineSettings
+    from recon.unexplained import RESIDUAL_PINGS, UNEXPLAINED_BEYOND
+    key = {"options": list(options), "settings": asdict(RefineSettings()),
+           "wrap": command.DEFAULT_WRAP, "smooth": command.DEFAULT_SMOOTH,
+           "unexplained": [command.DEFAULT_UNEXPLAINED, RESIDUAL_PINGS, UNEXPLAINED_BEYOND]}
+    return identity.digest(json.dumps(key, sort_keys=True, default=str), length=8)
+
+
+def _start_refine(dataset: str, volume: str, mesh: str, history: str, options: list[str],
+                  threads: int, log: Path):
+    """Start ``recon refine DATASET --init VOLUME --out MESH`` with ``options`` in a child
+    process (its output to ``log``); returns (process, start time). :func:`_finish_refine`
+    waits for it. A child, not a fork of this process: Dr.Jit's threads do not survive fork."""
+    import subprocess
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "refine", dataset, "--init",
+                                 volume, "--out", mesh, "--history", history, "--no-progress",
+                                 "--threads", str(threads), "--force", *options],
+                                stdout=fh, stderr=subprocess.STDOUT)
+    return proc, time.perf_counter()
+
+
+def _finish_refine(proc, t0: float) -> dict:
+    """Wait for a :func:`_start_refine` child: its exit status, wall and CPU seconds (user +
+    system, its own rusage)."""
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return {"rc": proc.returncode, "wall_s": time.perf_counter() - t0,
+            "cpu_s": usage.ru_utime + usage.ru_stime}
+
+
+def refine_results(results: list[dict], settings: Settings, workers: int | None = None
+                   ) -> tuple[list[dict], list[str]]:
+    """The NBP + refine row: ``recon refine`` of each main NBP cell's solid on its dataset
+    (``settings.refine_options``), the mesh scored with both evaluations of the table
+    (:func:`evaluations`; a mesh has no threshold sweep). Files beside the NBP volume,
+    ``<volume stem>.refine-<key>.ply`` / ``.json`` (history) / ``.<protocol>.json`` (metrics,
+    with the wall and CPU seconds); a later run reuses them. Shapes run in ``workers``
+    processes at once (default 2, one thread each). Returns (rows shaped as
+    :func:`cell_result`'s, notes on refinements that failed)."""
+    from recon.evaluation import evaluate_file, json_safe
+    from sonarsim.atomic import atomic_path
+    nbp = [r for r in main_rows(results) if r["method"] == "nbp"]
+    label = f"refine-{refine_key(settings.refine_options)}"
+    todo, rows, notes = [], [], []
+    for r in nbp:
+        stem = Path(r["volume"]).with_suffix("")
+        files = {"mesh": f"{stem}.{label}.ply", "history": f"{stem}.{label}.json",
+                 **{p: f"{stem}.{label}.{p}.json" for p in PROTOCOLS}}
+        todo.append((r, files))
+    n_workers = max(1, min(workers or 2, len(todo)))
+    threads = 1 if n_workers > 1 else (os.cpu_count() or 1)
+    runs, queue, running = {}, [(r, f) for r, f in todo
+                                 if not all(Path(f[p]).is_file() for p in PROTOCOLS)], []
+    while queue or running:         # at most n_workers children at once
+        while queue and len(running) < n_workers:
+            r, files = queue.pop(0)
+            running.append((r, _start_refine(r["dataset"], r["volume"], files["mesh"],
+                                             files["history"], list(settings.refine_options),
+                                             threads, Path(files["mesh"]).with_suffix(".log"))))
+        r, (proc, t0) = running.pop(0)
+        runs[r["shape"]] = _finish_refine(proc, t0)
+    for r, files in todo:
+        if r["shape"] in runs:
+            run = runs[r["shape"]]
+            if run["rc"] != 0:
+                notes.append(f"{REFINE.label} {r['shape']}: recon refine exited with "
+                             f"{run['rc']} (its output: {Path(files['mesh']).with_suffix('.log')}); "
+                             "no row")
+                continue
+            for evaluation in evaluations(settings):
+                opts = {k: v for k, v in evaluation.items()
+                        if k not in ("name", "threshold", "sweep")}
+                t0, c0 = time.perf_counter(), time.process_time()
+                found = evaluate_file(Path(files["mesh"]), r["dataset"], **opts)
+                saved = {"job": r["job"], "evaluation": evaluation["name"],
+                         "metrics": {k: v for k, v in found.items() if k != "sweep"},
+                         "wall_s": {"solve": run["wall_s"], "evaluate": time.perf_counter() - t0},
+                         "cpu_s": {"solve": run["cpu_s"], "evaluate": time.process_time() - c0}}
+                with atomic_path(Path(files[evaluation["name"]])) as tmp:
+                    Path(tmp).write_text(json.dumps(json_safe(saved), indent=1, default=str))
+        if not all(Path(files[p]).is_file() for p in PROTOCOLS):
+            continue
+        saved = {p: json.loads(Path(files[p]).read_text()) for p in PROTOCOLS}
+        wall = {k: sum(saved[p]["wall_s"][k] for p in PROTOCOLS) if k == "evaluate"
+                else saved[PROTOCOLS[0]]["wall_s"][k] for k in ("solve", "evaluate")}
+        cpu = {k: sum(saved[p]["cpu_s"][k] for p in PROTOCOLS) if k == "evaluate"
+               else saved[PROTOCOLS[0]]["cpu_s"][k] for k in ("solve", "evaluate")}
+        rows.append({**{k: r[k] for k in ("snr_db", "bandwidth", "shape", "job", "dataset",
+                                          "measured_snr_db", "mc_snr_db", "n_pings")},
+                     "cell": f"refine_{r['shape']}_{r['bandwidth']}_{r['snr_db']:g}dB",
+                     "method": REFINE.key, "label": REFINE.label,
+                     "settings_digest": settings.digest(), "step": label,
+                     "init": r["volume"], "fitted": r["dataset"], "volume": files["mesh"],
+                     "time_s": wall["solve"], "notes": [],
+                     "reference": saved["reference"]["metrics"],
+                     "exact": saved["exact"]["metrics"], "evaluate_s": wall["evaluate"],
+                     "stages_s": {"refine_s": wall["solve"], "evaluate_s": wall["evaluate"]},
+                     "stages_cpu_s": {"refine_s": cpu["solve"],
+                                      "evaluate_s": cpu["evaluate"]}})
+    return rows, notes
+
+
 def stage_sums(results: list[dict], key: str = "stages_s") -> tuple[dict, list[str]]:
     """({stage: seconds summed over ``results``' cells}, [stages some cell lacks]) of the
     cells' ``key`` (``stages_s`` wall, ``stages_cpu_s`` CPU); a job's simulation counts once
@@ -674,14 +802,16 @@ def write_markdown(path: Path, results, methods, summary: str, notes: list[str])
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for m in methods:
             sel = [r for r in main if r["method"] == m.key]
-            ref = REFERENCE[m.label]
+            ref = REFERENCE.get(m.label)
             ours = " | ".join(fmt(mean_over(sel, protocol, k), spec)
                               for k, spec in TABLE_KEYS.items())
             best = " | ".join(fmt(mean_over(sel, protocol, k), spec) for k, spec in
                               (("best_chamfer_sq", ".2e"), ("best_iou", ".4f"),
                                ("normal_error_deg", ".1f")))
-            lines.append(f"| {m.label} | {ours} | | {ref['chamfer_sq']:.2e} | {ref['iou']:.4f} "
-                         f"| {ref['lpips']:.4f} | {ref['psnr']:.3f} | | {best} |")
+            published = ("– | – | – | –" if ref is None else
+                         f"{ref['chamfer_sq']:.2e} | {ref['iou']:.4f} | {ref['lpips']:.4f} | "
+                         f"{ref['psnr']:.3f}")
+            lines.append(f"| {m.label} | {ours} | | {published} | | {best} |")
         lines.append("")
     lines += ["## Per shape (20 kHz / 20 dB)", "",
               "| shape | method | protocol | Chamfer | Chamfer best @ τ | IoU | IoU best @ τ | "
@@ -790,15 +920,20 @@ def write_figure(path: Path, results, methods, resolution: int = 160, dpi: int =
             r = next((r for r in row if r["method"] == m.key), None)
             if r is None:
                 continue
+            e = r["reference"]
+            title = f"IoU {fmt(e.get('iou'), '.3f')}, C² {fmt(e.get('chamfer_sq'), '.1e')}"
+            if str(r["volume"]).endswith(".ply"):          # the NBP + refine row: a mesh
+                import trimesh
+                figures.render_panel(axs[i, 2 + 2 * j], trimesh.load(r["volume"], process=False),
+                                     cams, view, f"{m.label}: {title}")
+                continue
             vol = Volume.read(r["volume"])
             v, b = export.crop_volume(vol.volume, vol.bounds, crop_box)
             mag = export.normalized_magnitude(v)
             axs[i, 1 + 2 * j].axis("on")
             figures.mip_panel(axs[i, 1 + 2 * j], mag, b, 1, f"{m.label}: MIP over y", ticks=False)
-            e = r["reference"]
             figures.render_panel(axs[i, 2 + 2 * j], export.mesh_from_volume(v, b, THRESHOLD), cams,
-                                 view, f"IoU {fmt(e.get('iou'), '.3f')}, "
-                                       f"C² {fmt(e.get('chamfer_sq'), '.1e')}")
+                                 view, title)
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
 
@@ -817,6 +952,8 @@ def parse_args(argv):
     ap.add_argument("--methods", default=None,
                     help=f"comma list of {list(METHOD_BY_KEY)} (default: all available)")
     ap.add_argument("--no-sweep", action="store_true", help="only the 20 kHz / 20 dB cells")
+    ap.add_argument("--no-refine", action="store_true",
+                    help="leave out the NBP + recon refine row (recon refine of each NBP solid)")
     ap.add_argument("--angle-step", type=int)
     ap.add_argument("--height-step", type=int)
     ap.add_argument("--paths-per-pose", type=int)
@@ -908,12 +1045,21 @@ def main(argv: list[str] | None = None) -> int:
     print(summary, flush=True)
     results = run_batch(cells, settings, out, args.scene_source, args.scheduler, args.workers,
                         args.data)
+    refined = []
+    if not args.no_refine and any(m.key == "nbp" for m in methods):
+        refined, failed = refine_results(results, settings, args.workers)
+        notes += failed
+        if refined:
+            methods = methods + [REFINE]
+    cells, results = results, results + refined     # the batch's cells; every row of the table
     for r in results:
         notes += r.get("notes", [])
         e, x = r["reference"], r["exact"]
         stages, cpu = r["stages_s"], r.get("stages_cpu_s") or {}
-        print(f"{r['cell']:>28}: solve {fmt(stages.get('solve_s'), '.1f')} s "
-              f"({fmt(cpu.get('solve_s'), '.0f')} CPU-s), evaluate "
+        solve, solve_cpu = (stages.get("solve_s", stages.get("refine_s")),
+                            cpu.get("solve_s", cpu.get("refine_s")))
+        print(f"{r['cell']:>28}: solve {fmt(solve, '.1f')} s "
+              f"({fmt(solve_cpu, '.0f')} CPU-s), evaluate "
               f"{fmt(stages.get('evaluate_s'), '.1f')} s ({fmt(cpu.get('evaluate_s'), '.0f')} "
               f"CPU-s) | reference: IoU "
               f"{fmt(e['iou'], '.3f')}, C² {fmt(e['chamfer_sq'], '.2e')}, PSNR "
@@ -924,7 +1070,8 @@ def main(argv: list[str] | None = None) -> int:
     from recon.evaluation import json_safe
     previous = out / "table2.json"
     try:
-        same_cells = json.loads(previous.read_text()).get("cells") == \
+        before = json.loads(previous.read_text())
+        same_cells = before.get("cells", []) + before.get("refined", []) == \
             json.loads(json.dumps(json_safe(results), default=str))
     except (OSError, ValueError):
         same_cells = False
@@ -935,7 +1082,8 @@ def main(argv: list[str] | None = None) -> int:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     (out / "table2.json").write_text(json.dumps(json_safe(
         {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
-         "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,
+         "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": cells,
+         "refined": refined,
          "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
          "peak_rss_mb": peak_mb, "n_pings": settings.n_pings}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())

@@ -165,9 +165,47 @@ def test_markdown_means_and_published_rows(quick_run, table2):
     assert dataset.split("|")[2].strip() == f"{sum(runs.values()):.0f}"
     with open(quick_run / "table2.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert len([r for r in rows if r["source"] == "ours"]) == 2 * len(cells)
+    refined = _result(quick_run)["refined"]
+    assert len([r for r in rows if r["source"] == "ours"]) == 2 * (len(cells) + len(refined))
     published = {r["method"]: r for r in rows if r["source"] == "published"}
     assert float(published["PFA"]["iou"]) == pytest.approx(0.3586)
+
+
+@pytest.mark.slow
+def test_nbp_refine_row_is_the_command_on_each_nbp_solid(quick_run, table2):
+    """The NBP + recon refine row: one refinement per main NBP cell, made by ``recon refine``
+    from that cell's volume with the size's options (its history says so), the stored
+    metrics equal a fresh evaluation of the stored mesh, and the table prints the row with no
+    published values."""
+    from recon.evaluation import evaluate_file
+    result = _result(quick_run)
+    nbp = {c["shape"]: c for c in result["cells"]
+           if c["method"] == "nbp" and c["snr_db"] == 20.0 and c["bandwidth"] == "20k"}
+    refined = {r["shape"]: r for r in result["refined"]}
+    assert set(refined) == set(nbp) == {"bunny", "cube", "cylinder"}
+    settings = table2.SIZES["quick"]
+    for shape, r in refined.items():
+        assert r["init"] == nbp[shape]["volume"] and r["dataset"] == nbp[shape]["dataset"]
+        mesh = Path(r["volume"])
+        assert mesh.suffix == ".ply" and mesh.parent == quick_run / "batch"
+        assert mesh.name.startswith(Path(nbp[shape]["volume"]).stem + ".refine-")
+        history = json.loads(mesh.with_suffix(".json").read_text())
+        assert history["settings"]["envelope_steps"] == 2
+        assert history["settings"]["waveform_steps"] == 1
+        assert "--envelope-steps" in settings.refine_options
+        assert r["stages_cpu_s"]["refine_s"] > 0 and r["time_s"] > 0
+        fresh = evaluate_file(mesh, r["dataset"], protocol="exact", images=False,
+                              samples=settings.samples,
+                              crop=[-1e3, 1e3, -1e3, 1e3, table2.CROP_Z, 1e3])
+        assert r["exact"]["chamfer_sq"] == pytest.approx(fresh["chamfer_sq"], rel=1e-12)
+        assert r["exact"]["iou"] == fresh["iou"]
+        assert r["reference"]["protocol"] == "reference"
+    section = (quick_run / "table2.md").read_text().split("— the reference's protocol")[1]
+    row = next(line for line in section.splitlines()
+               if line.startswith(f"| {table2.REFINE.label} |"))
+    parts = [p.strip() for p in row.split("|")]
+    assert parts[7:11] == ["–"] * 4
+    assert parts[3] == f"{np.mean([r['reference']['iou'] for r in refined.values()]):.4f}"
 
 
 @pytest.mark.slow
