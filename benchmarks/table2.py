@@ -649,8 +649,8 @@ def refine_key(options: tuple[str, ...]) -> str:
 def _start_refine(dataset: str, volume: str, mesh: str, history: str, options: list[str],
                   threads: int, log: Path):
     """Start ``recon refine DATASET --init VOLUME --out MESH`` with ``options`` in a child
-    process (its output to ``log``); returns (process, start time). :func:`_finish_refine`
-    waits for it. A child, not a fork of this process: Dr.Jit's threads do not survive fork."""
+    process (its output to ``log``); returns (process, start time). :func:`_finished_refine`
+    reaps it. A child, not a fork of this process: Dr.Jit's threads do not survive fork."""
     import subprocess
     with open(log, "w") as fh:
         proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "refine", dataset, "--init",
@@ -660,10 +660,12 @@ def _start_refine(dataset: str, volume: str, mesh: str, history: str, options: l
     return proc, time.perf_counter()
 
 
-def _finish_refine(proc, t0: float) -> dict:
-    """Wait for a :func:`_start_refine` child: its exit status, wall and CPU seconds (user +
-    system, its own rusage)."""
-    _, status, usage = os.wait4(proc.pid, 0)
+def _finished_refine(proc, t0: float) -> dict | None:
+    """A :func:`_start_refine` child's exit status, wall and CPU seconds (user + system, its
+    own rusage) if it has ended, else None (does not block)."""
+    pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+    if pid == 0:
+        return None
     proc.returncode = os.waitstatus_to_exitcode(status)
     return {"rc": proc.returncode, "wall_s": time.perf_counter() - t0,
             "cpu_s": usage.ru_utime + usage.ru_stime}
@@ -698,8 +700,13 @@ def refine_results(results: list[dict], settings: Settings, workers: int | None 
             running.append((r, _start_refine(r["dataset"], r["volume"], files["mesh"],
                                              files["history"], list(settings.refine_options),
                                              threads, Path(files["mesh"]).with_suffix(".log"))))
-        r, (proc, t0) = running.pop(0)
-        runs[r["shape"]] = _finish_refine(proc, t0)
+        time.sleep(0.2)
+        for item in list(running):
+            r, (proc, t0) = item
+            ended = _finished_refine(proc, t0)
+            if ended is not None:
+                runs[r["shape"]] = ended
+                running.remove(item)
     for r, files in todo:
         if r["shape"] in runs:
             run = runs[r["shape"]]
