@@ -447,6 +447,24 @@ def _half_edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 CREASE_ANGLE = 40.0     # degrees between adjacent faces' normals: a crease remeshing keeps
+# Above this crease density (crease_density) a mesh's "creases" are the voxel steps of an
+# iso-surface, not a model's edges: measured 0–0.22 on the GT meshes of eleven scenes, 0.64
+# on a backprojection's and 1.36–1.83 on NBP solids' marching-cubes surfaces (8 mm edges;
+# docs/refine.md "Creases").
+CREASE_DENSITY_MAX = 0.4
+
+
+def crease_density(vertices: np.ndarray, faces: np.ndarray, edge_length: float) -> float:
+    """The length of the mesh's creases (edges whose faces' normals turn by more than
+    :data:`CREASE_ANGLE`) × ``edge_length`` / its area: about the fraction of the surface
+    within one edge of a crease (0 for a smooth mesh)."""
+    import trimesh
+    m = trimesh.Trimesh(vertices, faces, process=False)
+    if m.area <= 0 or len(m.face_adjacency) == 0:
+        return 0.0
+    edges = m.face_adjacency_edges[np.degrees(m.face_adjacency_angles) > CREASE_ANGLE]
+    length = np.linalg.norm(m.vertices[edges[:, 0]] - m.vertices[edges[:, 1]], axis=1).sum()
+    return float(length * edge_length / m.area)
 
 
 def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
@@ -460,12 +478,15 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
     flipped). Without it the remeshing cuts every sharp edge by up to half an edge length; on
     a box the bevels change the echoes more than millimetres of face position do
     (docs/refine.md "Creases"). For a given mesh (``recon refine --init MESH``), not for the
-    iso-surface of a volume, whose voxel steps would count as creases."""
+    iso-surface of a volume, whose voxel steps would count as creases: a mesh whose
+    :func:`crease_density` exceeds :data:`CREASE_DENSITY_MAX` (an exported iso-surface) is
+    remeshed without them."""
     from gpytoolbox import remesh_botsch
     if keep_creases:      # welded, so that a face's neighbours across a crease are known
         import trimesh
         welded = trimesh.Trimesh(vertices, faces, process=True)
         vertices, faces = welded.vertices, welded.faces
+        keep_creases = crease_density(vertices, faces, edge_length) <= CREASE_DENSITY_MAX
     vertices, faces = manifold(vertices, faces)
     if len(faces) == 0:
         raise InputError("cannot remesh the surface: no face is left on a manifold part")

@@ -637,6 +637,24 @@ def test_remesh_keeps_a_box_sharp_when_asked():
     np.testing.assert_allclose(vb, vc)
 
 
+def test_an_iso_surface_keeps_no_creases():
+    """A volume's marching-cubes surface (a voxelised box's steps) is no model with sharp
+    edges: its crease density is far above :data:`refine.CREASE_DENSITY_MAX` and
+    ``keep_creases`` remeshes it as without; a box's is below."""
+    from skimage.measure import marching_cubes
+    occ = np.zeros((40, 40, 40))
+    x, y, z = np.meshgrid(*(np.arange(40),) * 3, indexing="ij")
+    occ[(x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 < 14 ** 2] = 1.0     # a voxelised ball
+    v, f, _, _ = marching_cubes(occ, 0.5, spacing=(3.2e-3,) * 3)
+    steps = refine.crease_density(v, f, 8e-3)
+    box = trimesh.creation.box(extents=(0.17, 0.156, 0.12))
+    edges = refine.crease_density(box.vertices, box.faces, 8e-3)
+    assert edges < refine.CREASE_DENSITY_MAX < steps
+    assert edges == pytest.approx(4 * (0.17 + 0.156 + 0.12) * 8e-3 / box.area, rel=1e-9)
+    np.testing.assert_allclose(refine.remesh(v, f, 8e-3, keep_creases=True)[0],
+                               refine.remesh(v, f, 8e-3)[0])
+
+
 def test_a_box_remeshed_with_its_creases_renders_the_scanned_echoes(mi, tmp_path):
     """The reason for ``keep_creases``, through the renderer: a noiseless scan of a 10 cm box
     on the ground, and the envelope misfit of the box's remeshed surface against it. Kept
