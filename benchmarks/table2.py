@@ -931,6 +931,8 @@ def write_figure(path: Path, results, methods, resolution: int = 160, dpi: int =
             title = f"IoU {fmt(e.get('iou'), '.3f')}, C² {fmt(e.get('chamfer_sq'), '.1e')}"
             if str(r["volume"]).endswith(".ply"):          # the NBP + refine row: a mesh
                 import trimesh
+                axs[i, 1 + 2 * j].text(0.5, 0.5, f"{m.label}:\na mesh, no MIP", ha="center",
+                                       va="center", fontsize=7)
                 figures.render_panel(axs[i, 2 + 2 * j], trimesh.load(r["volume"], process=False),
                                      cams, view, f"{m.label}: {title}")
                 continue
