@@ -694,19 +694,24 @@ def refine_results(results: list[dict], settings: Settings, workers: int | None 
     threads = 1 if n_workers > 1 else (os.cpu_count() or 1)
     runs, queue, running = {}, [(r, f) for r, f in todo
                                  if not all(Path(f[p]).is_file() for p in PROTOCOLS)], []
-    while queue or running:         # at most n_workers children at once
-        while queue and len(running) < n_workers:
-            r, files = queue.pop(0)
-            running.append((r, _start_refine(r["dataset"], r["volume"], files["mesh"],
-                                             files["history"], list(settings.refine_options),
-                                             threads, Path(files["mesh"]).with_suffix(".log"))))
-        time.sleep(0.2)
-        for item in list(running):
-            r, (proc, t0) = item
-            ended = _finished_refine(proc, t0)
-            if ended is not None:
-                runs[r["shape"]] = ended
-                running.remove(item)
+    try:
+        while queue or running:         # at most n_workers children at once
+            while queue and len(running) < n_workers:
+                r, files = queue.pop(0)
+                running.append((r, _start_refine(r["dataset"], r["volume"], files["mesh"],
+                                                 files["history"], list(settings.refine_options),
+                                                 threads, Path(files["mesh"]).with_suffix(".log"))))
+            time.sleep(0.2)
+            for item in list(running):
+                r, (proc, t0) = item
+                ended = _finished_refine(proc, t0)
+                if ended is not None:
+                    runs[r["shape"]] = ended
+                    running.remove(item)
+    finally:                            # an interrupted table leaves no refinement running
+        for _, (proc, _) in running:
+            proc.kill()
+            proc.wait()
     for r, files in todo:
         if r["shape"] in runs:
             run = runs[r["shape"]]
@@ -729,10 +734,11 @@ def refine_results(results: list[dict], settings: Settings, workers: int | None 
         if not all(Path(files[p]).is_file() for p in PROTOCOLS):
             continue
         saved = {p: json.loads(Path(files[p]).read_text()) for p in PROTOCOLS}
-        wall = {k: sum(saved[p]["wall_s"][k] for p in PROTOCOLS) if k == "evaluate"
-                else saved[PROTOCOLS[0]]["wall_s"][k] for k in ("solve", "evaluate")}
-        cpu = {k: sum(saved[p]["cpu_s"][k] for p in PROTOCOLS) if k == "evaluate"
-               else saved[PROTOCOLS[0]]["cpu_s"][k] for k in ("solve", "evaluate")}
+        # the refinement's times are in every evaluation's file; the evaluations' add up
+        wall = {"solve": saved["reference"]["wall_s"]["solve"],
+                "evaluate": sum(saved[p]["wall_s"]["evaluate"] for p in PROTOCOLS)}
+        cpu = {"solve": saved["reference"]["cpu_s"]["solve"],
+               "evaluate": sum(saved[p]["cpu_s"]["evaluate"] for p in PROTOCOLS)}
         rows.append({**{k: r[k] for k in ("snr_db", "bandwidth", "shape", "job", "dataset",
                                           "measured_snr_db", "mc_snr_db", "n_pings")},
                      "cell": f"refine_{r['shape']}_{r['bandwidth']}_{r['snr_db']:g}dB",
@@ -1060,8 +1066,8 @@ def main(argv: list[str] | None = None) -> int:
         notes += failed
         if refined:
             methods = methods + [REFINE]
-    cells, results = results, results + refined     # the batch's cells; every row of the table
-    for r in results:
+    rows = results + refined        # every row of the table: the batch's cells, then refine's
+    for r in rows:
         notes += r.get("notes", [])
         e, x = r["reference"], r["exact"]
         stages, cpu = r["stages_s"], r.get("stages_cpu_s") or {}
@@ -1074,31 +1080,31 @@ def main(argv: list[str] | None = None) -> int:
               f"{fmt(e['iou'], '.3f')}, C² {fmt(e['chamfer_sq'], '.2e')}, PSNR "
               f"{fmt(e.get('psnr_depth'), '.2f')} | exact: IoU {fmt(x['iou'], '.3f')}, C² "
               f"{fmt(x['chamfer_sq'], '.2e')}", flush=True)
-    write_markdown(out / "table2.md", results, methods, summary, notes)
-    write_csv(out / "table2.csv", results)
+    write_markdown(out / "table2.md", rows, methods, summary, notes)
+    write_csv(out / "table2.csv", rows)
     from recon.evaluation import json_safe
     previous = out / "table2.json"
     try:
         before = json.loads(previous.read_text())
         same_cells = before.get("cells", []) + before.get("refined", []) == \
-            json.loads(json.dumps(json_safe(results), default=str))
+            json.loads(json.dumps(json_safe(rows), default=str))
     except (OSError, ValueError):
         same_cells = False
     if not (same_cells and (out / "table2.png").is_file()):   # a resume that changed nothing
-        write_figure(out / "table2.png", results, methods, settings.figure_resolution,
+        write_figure(out / "table2.png", rows, methods, settings.figure_resolution,
                      settings.figure_dpi)
     total = time.perf_counter() - t_start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     (out / "table2.json").write_text(json.dumps(json_safe(
         {"summary": summary, "settings": asdict(settings), "simulation": SIMULATION,
-         "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": cells,
+         "pulses": PULSES, "threshold": THRESHOLD, "crop_z_m": CROP_Z, "cells": results,
          "refined": refined,
          "notes": sorted(set(notes)), "published": REFERENCE, "total_s": total,
          "peak_rss_mb": peak_mb, "n_pings": settings.n_pings}), indent=1, allow_nan=False, default=str))
     print((out / "table2.md").read_text())
     usage = resource.getrusage(resource.RUSAGE_SELF)
     for key, what in (("stages_s", "wall"), ("stages_cpu_s", "CPU, user+sys")):
-        totals, missing = stage_sums(results, key)
+        totals, missing = stage_sums(rows, key)
         print(f"stages ({what}, s, summed over cells; cells of an earlier run count their own): "
               + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in totals.items())
               + (f" (not recorded: {', '.join(missing)})" if missing else ""))
