@@ -386,6 +386,25 @@ def smoothed_start(mesh: trimesh.Trimesh, lam: float, edge_length: float) -> tri
     return trimesh.Trimesh(smooth_vertices(v, f, lam), f, process=False)
 
 
+def seat_on_ground(mesh: trimesh.Trimesh, z_cut: float) -> tuple[trimesh.Trimesh, int]:
+    """(mesh, moved): ``mesh`` continued straight down to the ground (z = 0): each of its
+    vertices below ``z_cut`` (m) moved vertically onto the ground, ``moved`` of them.
+
+    A volume's start is cut at ``z_min`` (:func:`start_mesh`: the ground's echo hides what is
+    lower), so its refinement closes the object by a face a few millimetres above the
+    ground, and the fit cannot move that face: no sensor sees it. An object in these scenes
+    stands on the ground; its part below the cut is taken as the cut's cross-section
+    continued down (the volume solids' convention too: their enclosed voxels are filled down
+    to the grid's lowest plane). A vertex that the fit sank below the ground is lifted onto
+    it. Nothing moves when the mesh's lowest vertex is above ``z_cut`` (an object the cut
+    did not touch). Positions only: the faces, hence a closed mesh's closure, are kept."""
+    import trimesh
+    v = np.array(mesh.vertices, np.float64)
+    low = v[:, 2] < float(z_cut)
+    v[low, 2] = 0.0
+    return trimesh.Trimesh(v, np.asarray(mesh.faces), process=False), int(low.sum())
+
+
 def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
     """The connected components of ``mesh`` with ≥ ``min_fraction`` × the largest's faces."""
     import trimesh

@@ -709,6 +709,72 @@ def test_refine_keeps_creases_only_of_a_given_mesh():
     assert not keeps_creases(volume, {"wrap": 0.0, "smooth": 0.0})
 
 
+def _box_volume(first_kept: float = 1.0):
+    """A 10 × 10 cm box standing on the ground up to 6 cm, on a grid of 3.2 mm voxels
+    (z planes 0, 3.2, 6.4 ... mm): 1 in its voxels, ``first_kept`` in its plane at 6.4 mm."""
+    bounds = np.array([[-0.08, 0.08], [-0.08, 0.08], [0.0, 0.0992]])      # 51 × 51 × 32 voxels
+    vol = np.zeros((51, 51, 32), np.complex64)
+    vol[10:41, 10:41, :19] = 1.0                                          # z ≤ 5.76 cm
+    vol[10:41, 10:41, 2] = first_kept
+    return vol, bounds
+
+
+@pytest.mark.parametrize("value, cap", [(1.0, 0.00384), (0.22, 0.0061)],
+                         ids=["binary", "just-above-threshold"])
+def test_seating_continues_a_cut_start_straight_down_to_the_ground(value, cap):
+    """The start is cut at z_min = 5 mm: its closing face lies between the last cleared plane
+    (3.2 mm) and the first kept one (6.4 mm), nearer the kept one the closer that plane's
+    voxels are to the threshold (0.22 against 0.2: 6.1 mm, above z_min). Seated below z_min +
+    one voxel, the mesh reaches the ground with its top and sides where they were and stays
+    closed; its volume is the box's from the ground up."""
+    vol, bounds = _box_volume(value)
+    start = refine.start_mesh(vol, bounds, threshold=0.2, z_min=0.005)
+    dz = 0.0992 / 31
+    assert start.vertices[:, 2].min() == pytest.approx(cap, abs=1e-4) and start.is_watertight
+    seated, moved = refine.seat_on_ground(start, 0.005 + dz)
+    assert moved > 0 and seated.is_watertight
+    assert seated.vertices[:, 2].min() == 0.0
+    np.testing.assert_allclose(seated.bounds[1], start.bounds[1])
+    np.testing.assert_allclose(seated.bounds[0][:2], start.bounds[0][:2])
+    top = start.bounds[1][2]
+    assert seated.volume == pytest.approx(np.prod(np.ptp(start.bounds[:, :2], axis=0)) * top,
+                                          rel=0.02)
+    # every vertex below the cut went straight down: x, y unchanged
+    np.testing.assert_array_equal(seated.vertices[:, :2], start.vertices[:, :2])
+
+
+def test_seating_leaves_an_object_above_the_cut_and_lifts_what_sank():
+    box = trimesh.creation.box(extents=[0.05, 0.05, 0.04])
+    box.vertices += [0.0, 0.0, 0.03]                                      # floats 1 cm up
+    same, moved = refine.seat_on_ground(box, 0.008)
+    assert moved == 0
+    np.testing.assert_array_equal(same.vertices, box.vertices)
+    sunk = box.copy()
+    sunk.vertices[sunk.vertices[:, 2] < 0.02, 2] = -0.004                # base 4 mm under the ground
+    lifted, moved = refine.seat_on_ground(sunk, 0.008)
+    assert moved == 4 and lifted.vertices[:, 2].min() == 0.0
+
+
+def test_seating_is_on_for_a_volume_with_a_ground_and_off_otherwise(tmp_path):
+    from pathlib import Path
+    from types import SimpleNamespace
+    from recon.commands.refine import seat_height
+    from sonarsim.dataset import Volume
+    vol, bounds = _box_volume()
+    Volume(vol, bounds, "test").write(tmp_path / "v.h5")
+    grounded = SimpleNamespace(meta={})                  # no scene file: the default ground
+    def args(init, seat=None, no_ground=False):
+        return argparse.Namespace(init=Path(init), seat=seat, no_ground=no_ground, z_min=0.005)
+    volume = tmp_path / "v.h5"
+    assert seat_height(args(volume), grounded) == pytest.approx(0.005 + 0.0992 / 31)
+    assert seat_height(args(volume, no_ground=True), grounded) is None
+    assert seat_height(args(volume, seat=False), grounded) is None
+    assert seat_height(args(volume, seat=True, no_ground=True), grounded) is not None
+    assert seat_height(args("m.ply"), grounded) is None
+    with pytest.raises(Exception, match="--seat applies to a volume"):
+        seat_height(args("m.ply", seat=True), grounded)
+
+
 def test_grow_adds_the_parts_of_the_other_volume_that_touch_the_start():
     occ = np.zeros((30, 30, 30), bool)
     occ[10:20, 10:20, 5:15] = True                      # the start: a box

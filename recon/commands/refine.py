@@ -19,6 +19,8 @@ DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (d
 DEFAULT_SMOOTH = "1"       # and the unwrapped start smoothed once more (docs/refine.md "Smoothed starts")
 DEFAULT_UNEXPLAINED = 0.2  # and the kept start grown by the unexplained data (docs/refine.md
                            # "Grown from the unexplained data")
+SEAT_BY_DEFAULT = True     # a volume --init's mesh continued down to the ground (docs/refine.md
+                           # "Seated on the ground")
 
 OPTION_HELP = {
     "affine_steps": "steps of the affine stage (the start scaled per axis about its base and "
@@ -102,11 +104,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "OUT_STEM.wrapK.start.EXT and OUT_STEM.wrapK.EXT, or "
                              "OUT_STEM.smoothL.start.EXT and OUT_STEM.smoothL.EXT, the grown one "
                              "OUT_STEM.grown-....EXT, and the unexplained image as a volume, "
-                             "OUT_STEM.unexplained.h5 (e.g. to score every candidate)")
+                             "OUT_STEM.unexplained.h5 (e.g. to score every candidate); the "
+                             "refined ones seated as --out is (--seat)")
     parser.add_argument("--pings", default=None, metavar="START:STOP[:STEP]",
                         help="fit only this slice of the pings (e.g. '::41')")
     parser.add_argument("--no-ground", action="store_true",
                         help="no ground in the model (default: the dataset's scene ground)")
+    parser.add_argument("--seat", action=argparse.BooleanOptionalAction, default=None,
+                        help="volume --init: continue the written mesh straight down to the "
+                             "ground (z = 0): its vertices below the start's cut (--z-min plus "
+                             "one voxel of --init, where the closing face the fit cannot see "
+                             "lies) moved onto it, as the volume solids reach the ground "
+                             "(default: on for a volume --init with a ground in the model; "
+                             "docs/refine.md 'Seated on the ground')")
     parser.add_argument("--history", type=Path, default=None,
                         help="also write the per-step record (loss, scale, albedo, time) as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -389,13 +399,44 @@ def run(args: argparse.Namespace) -> int:
                                  checkpoint_store(args, ds, settings, specs, level))
 
 
+def seat_height(args, dataset) -> float | None:
+    """The height (m) below which ``--seat`` moves the written mesh's vertices onto the ground,
+    or None when it is off: ``--z-min`` plus one voxel of the ``--init`` volume (its start's
+    closing face lies within a voxel of the cut, :func:`recon.refine.start_mesh`). On by
+    default for a volume ``--init`` with a ground in the model; a mesh ``--init`` has no cut."""
+    import numpy as np
+    from sonarsim.dataset import Volume
+
+    from ..refine import dataset_ground
+    is_volume = args.init.suffix.lower() == ".h5"
+    seat = args.seat
+    if seat is None:
+        seat = (SEAT_BY_DEFAULT and is_volume and not args.no_ground
+                and dataset_ground(dataset) is not None)
+    if not seat:
+        return None
+    if not is_volume:
+        raise InputError("--seat applies to a volume --init (.h5), whose start is cut at "
+                         "--z-min; a mesh --init is written as fitted")
+    vol = Volume.read(args.init)
+    b = np.asarray(vol.bounds, np.float64)
+    nz = vol.volume.shape[2]
+    dz = (b[2, 1] - b[2, 0]) / max(nz - 1, 1)
+    return float(args.z_min + dz)
+
+
 def refine_candidates(args, ds, settings, specs: list, level: float, store) -> int:
     """Refine every start of ``specs`` (then the grown one at ``level``), keep the one with
     the lowest envelope misfit, write ``--out`` (and ``--history``, ``--keep-candidates``);
     ``store``: the ``--checkpoint`` (:class:`recon.refine_checkpoint.CandidateStore`) or None."""
     from ..export import write_mesh
-    from ..refine import solve
+    from ..refine import seat_on_ground, solve
     starts = start_candidates(args, ds, settings.edge_length, specs)
+    z_seat = seat_height(args, ds)
+
+    def seated(mesh):
+        return mesh if z_seat is None else seat_on_ground(mesh, z_seat)[0]
+
     from ..checks import check_box_sees_data
     for start in starts:
         check_box_sees_data(ds, *start["mesh"].bounds, f"--init {args.init}: no part of the start mesh",
@@ -427,7 +468,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
         if args.keep_candidates:           # after the fit: a failed one leaves no files
             start_path, refined_path = candidate_paths(args.out, start)
             write_mesh(start_path, init)
-            write_mesh(refined_path, res.mesh)
+            write_mesh(refined_path, seated(res.mesh))
         results.append(res)
         if several:
             env = candidates[-1]["envelope_misfit"]
@@ -448,13 +489,16 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
             refine_start(grown, several)
     best = choose_candidate(candidates)
     result, chosen = results[best], candidates[best]
-    write_mesh(args.out, result.mesh)
+    mesh, moved = (result.mesh, 0) if z_seat is None else seat_on_ground(result.mesh, z_seat)
+    write_mesh(args.out, mesh)
     if args.history is not None:
         from sonarsim.atomic import atomic_path
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
                                        "wrap": chosen["wrap"], "smooth": chosen["smooth"],
                                        "grown": chosen["grown"],
+                                       "seat": None if z_seat is None else {
+                                           "below_m": z_seat, "vertices_moved": moved},
                                        "unexplained": None if found is None else {
                                            k: v for k, v in found.items() if k != "image"},
                                        "candidates": candidates,
@@ -462,7 +506,9 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
     last = result.history[-1]
     albedo = "" if result.albedo is None else f", albedo {result.albedo:.3f} of the ground's"
     picked = f" (from the start {candidate_label(chosen)})" if len(candidates) > 1 else ""
+    seat = ("" if z_seat is None else
+            f"; {moved} vertices below {z_seat * 1e3:.1f} mm seated on the ground")
     print(f"wrote {args.out}: {len(result.faces)} faces after {len(result.history)} steps{picked}; "
           f"final {last['stage']} loss {last['loss']:.4f}, final misfit {result.final_misfit:.4f}"
-          f"{albedo}")
+          f"{albedo}{seat}")
     return 0
