@@ -405,6 +405,18 @@ def seat_on_ground(mesh: trimesh.Trimesh, z_cut: float) -> tuple[trimesh.Trimesh
     return trimesh.Trimesh(v, np.asarray(mesh.faces), process=False), int(low.sum())
 
 
+def seat_cut(start: trimesh.Trimesh, fitted: trimesh.Trimesh, base: float) -> float | None:
+    """The height (m) below which :func:`seat_on_ground` moves ``fitted``'s vertices, for a
+    refinement of ``start`` whose closing face lies below ``base`` (a volume's start: the cut
+    height plus one voxel): ``base`` raised by as much as the fit lifted the lowest vertex (the
+    closing face moves with the walls it joins: the Table-2 bunny's by 3.5 mm); None when the
+    start does not reach below ``base`` (it was not cut there: nothing to seat)."""
+    start_low = float(np.min(start.vertices[:, 2]))
+    if not start_low < base:
+        return None
+    return float(base) + max(0.0, float(np.min(fitted.vertices[:, 2])) - start_low)
+
+
 def largest_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
     """The connected components of ``mesh`` with ≥ ``min_fraction`` × the largest's faces."""
     import trimesh

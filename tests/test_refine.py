@@ -755,6 +755,50 @@ def test_seating_leaves_an_object_above_the_cut_and_lifts_what_sank():
     assert moved == 4 and lifted.vertices[:, 2].min() == 0.0
 
 
+def test_seating_follows_a_closing_face_the_fit_lifted():
+    """The fit can lift the closing face with the walls it joins (the Table-2 bunny's by 3.5
+    mm, above z_min + one voxel): the seating height rises by the lift, so the face still
+    reaches the ground; a start that was not cut there is not seated."""
+    vol, bounds = _box_volume()
+    start = refine.start_mesh(vol, bounds, threshold=0.2, z_min=0.005)
+    base = 0.005 + 0.0992 / 31
+    lifted = start.copy()
+    lifted.vertices[lifted.vertices[:, 2] < 0.03, 2] += 0.0045             # base 3.84 -> 8.34 mm
+    cut = refine.seat_cut(start, lifted, base)
+    assert cut == pytest.approx(base + 0.0045)
+    seated, _ = refine.seat_on_ground(lifted, cut)
+    assert seated.vertices[:, 2].min() == 0.0 and seated.is_watertight
+    assert not refine.seat_on_ground(lifted, base)[0].vertices[:, 2].min() < 0.008   # a fixed cut misses it
+    sunk = start.copy()
+    sunk.vertices[sunk.vertices[:, 2] < 0.03, 2] -= 0.002
+    assert refine.seat_cut(start, sunk, base) == base
+    floating = start.copy()
+    floating.vertices[:, 2] += 0.02
+    assert refine.seat_cut(floating, floating, base) is None
+
+
+def test_refine_command_writes_the_mesh_seated(ball_scan, tmp_path):
+    """A ball's volume cut at 4.5 cm (--z-min), refined a few steps with --seat: the written
+    mesh reaches the ground, its top stays, and the history says where and how much."""
+    import json
+    from recon.cli import main
+    from sonarsim.dataset import Volume
+    axes = [np.linspace(-0.1, 0.1, 51), np.linspace(-0.1, 0.1, 51), np.linspace(0.0, 0.15, 38)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    ball = np.sqrt(x ** 2 + y ** 2 + (z - 0.06) ** 2) < 0.03
+    Volume(ball.astype(np.complex64), np.array([[-0.1, 0.1], [-0.1, 0.1], [0.0, 0.15]]),
+           "test").write(tmp_path / "ball.h5")
+    out, hist = tmp_path / "seated.ply", tmp_path / "h.json"
+    assert main(["refine", str(ball_scan), "--init", str(tmp_path / "ball.h5"), "--out", str(out),
+                 "--wrap", "0", "--smooth", "0", "--grow-unexplained", "0", "--no-ground", "--seat",
+                 "--z-min", "0.045", "--envelope-steps", "1", "--waveform-steps", "1",
+                 "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
+                 "--no-progress"]) == 0
+    mesh, seat = trimesh.load(out), json.loads(hist.read_text())["seat"]
+    assert seat["vertices_moved"] > 0 and seat["below_m"] >= 0.045 + 0.15 / 37
+    assert mesh.vertices[:, 2].min() == 0.0 and mesh.vertices[:, 2].max() > 0.085
+
+
 def test_seating_is_on_for_a_volume_with_a_ground_and_off_otherwise(tmp_path):
     from pathlib import Path
     from types import SimpleNamespace

@@ -114,7 +114,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="volume --init: continue the written mesh straight down to the "
                              "ground (z = 0): its vertices below the start's cut (--z-min plus "
                              "one voxel of --init, where the closing face the fit cannot see "
-                             "lies) moved onto it, as the volume solids reach the ground "
+                             "lies, raised by as much as the fit lifted the mesh's lowest "
+                             "vertex) moved onto it, as the volume solids reach the ground "
                              "(default: on for a volume --init with a ground in the model; "
                              "docs/refine.md 'Seated on the ground')")
     parser.add_argument("--history", type=Path, default=None,
@@ -400,10 +401,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def seat_height(args, dataset) -> float | None:
-    """The height (m) below which ``--seat`` moves the written mesh's vertices onto the ground,
-    or None when it is off: ``--z-min`` plus one voxel of the ``--init`` volume (its start's
-    closing face lies within a voxel of the cut, :func:`recon.refine.start_mesh`). On by
-    default for a volume ``--init`` with a ground in the model; a mesh ``--init`` has no cut."""
+    """The height (m) below which a start's closing face lies, the ``base`` of
+    :func:`recon.refine.seat_cut`, or None when ``--seat`` is off: ``--z-min`` plus one voxel
+    of the ``--init`` volume (the face lies within a voxel of the cut,
+    :func:`recon.refine.start_mesh`). On by default for a volume ``--init`` with a ground in
+    the model; a mesh ``--init`` has no cut."""
     import numpy as np
     from sonarsim.dataset import Volume
 
@@ -430,19 +432,25 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
     the lowest envelope misfit, write ``--out`` (and ``--history``, ``--keep-candidates``);
     ``store``: the ``--checkpoint`` (:class:`recon.refine_checkpoint.CandidateStore`) or None."""
     from ..export import write_mesh
-    from ..refine import seat_on_ground, solve
+    from ..refine import seat_cut, seat_on_ground, solve
     starts = start_candidates(args, ds, settings.edge_length, specs)
-    z_seat = seat_height(args, ds)
+    base = seat_height(args, ds)
 
-    def seated(mesh):
-        return mesh if z_seat is None else seat_on_ground(mesh, z_seat)[0]
+    def seated(start, mesh) -> tuple:
+        """(the mesh as written, the height below which its vertices were seated or None,
+        how many)."""
+        cut = None if base is None else seat_cut(start, mesh, base)
+        if cut is None:
+            return mesh, None, 0
+        out, moved = seat_on_ground(mesh, cut)
+        return out, cut, moved
 
     from ..checks import check_box_sees_data
     for start in starts:
         check_box_sees_data(ds, *start["mesh"].bounds, f"--init {args.init}: no part of the start mesh",
                             "is it in metres and in the dataset's frame? (nothing to fit)")
     index = _common.parse_slice(args.pings, ds.n_pings)
-    candidates, results = [], []
+    candidates, results, fitted_from = [], [], []
 
     def refine_start(start: dict, several: bool) -> None:
         init, name = start["mesh"], candidate_label(start)
@@ -468,8 +476,9 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
         if args.keep_candidates:           # after the fit: a failed one leaves no files
             start_path, refined_path = candidate_paths(args.out, start)
             write_mesh(start_path, init)
-            write_mesh(refined_path, seated(res.mesh))
+            write_mesh(refined_path, seated(init, res.mesh)[0])
         results.append(res)
+        fitted_from.append(init)
         if several:
             env = candidates[-1]["envelope_misfit"]
             print(f"start {name}: envelope misfit "
@@ -489,7 +498,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
             refine_start(grown, several)
     best = choose_candidate(candidates)
     result, chosen = results[best], candidates[best]
-    mesh, moved = (result.mesh, 0) if z_seat is None else seat_on_ground(result.mesh, z_seat)
+    mesh, z_seat, moved = seated(fitted_from[best], result.mesh)
     write_mesh(args.out, mesh)
     if args.history is not None:
         from sonarsim.atomic import atomic_path
