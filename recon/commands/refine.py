@@ -406,8 +406,8 @@ def seat_height(args, dataset) -> float | None:
     of the ``--init`` volume (the face lies within a voxel of the cut,
     :func:`recon.refine.start_mesh`). On by default for a volume ``--init`` with a ground in
     the model; a mesh ``--init`` has no cut."""
-    import numpy as np
     from sonarsim.dataset import Volume
+    from sonarsim.dataset.volume import voxel_spacing
 
     from ..refine import dataset_ground
     is_volume = args.init.suffix.lower() == ".h5"
@@ -421,10 +421,7 @@ def seat_height(args, dataset) -> float | None:
         raise InputError("--seat applies to a volume --init (.h5), whose start is cut at "
                          "--z-min; a mesh --init is written as fitted")
     vol = Volume.read(args.init)
-    b = np.asarray(vol.bounds, np.float64)
-    nz = vol.volume.shape[2]
-    dz = (b[2, 1] - b[2, 0]) / max(nz - 1, 1)
-    return float(args.z_min + dz)
+    return float(args.z_min + voxel_spacing(vol.bounds, vol.volume.shape, single="zero")[2])
 
 
 def refine_candidates(args, ds, settings, specs: list, level: float, store) -> int:
