@@ -470,6 +470,54 @@ def manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     return split_pinched_vertices(vertices, f)
 
 
+def repair_slivers(vertices: np.ndarray, faces: np.ndarray, ratio: float = 1e-3
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without slivers: faces whose area is below ``ratio`` × half their longest
+    edge squared. A *cap* (its third corner on or near its longest edge) is removed by
+    flipping that edge with the face beyond it: the two faces become two that share the
+    cap's middle corner and the far corner, covering the same ground (exactly, when the
+    cap had zero area). A *needle* (a corner on another: its shortest edge below
+    ``sqrt(ratio)`` × the longest), and a cap whose flip would duplicate an edge, has its
+    shortest edge collapsed instead (the faces left with a repeated corner go, and so do both
+    faces of a coincident pair; unused vertices are dropped).
+
+    Why: ``remesh_botsch`` with feature edges can leave faces of exactly zero area along a
+    straight crease, and the renderer's gradient at their corners is NaN (Mitsuba's vertex
+    normals weight a face by its corner angles, whose derivative is infinite at 0 and π);
+    LargeSteps then spreads the NaN over the whole mesh and the next render fails."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).copy()
+    for _ in range(2 * len(f)):
+        e = v[f[:, [1, 2, 0]]] - v[f]                             # edges [F, 3, 3]: k → k+1
+        length2 = np.einsum("fkc,fkc->fk", e, e)
+        area = 0.5 * np.linalg.norm(np.cross(e[:, 0], -e[:, 2]), axis=1)
+        bad = np.flatnonzero(area < ratio * 0.5 * length2.max(axis=1))
+        if len(bad) == 0:
+            break
+        face = bad[0]
+        k = int(np.argmax(length2[face]))
+        a, c, b = f[face, k], f[face, (k + 1) % 3], f[face, (k + 2) % 3]
+        beyond = np.flatnonzero(((f == c) & (np.roll(f, -1, axis=1) == a)).any(axis=1))
+        needle = length2[face].min() < ratio * length2[face].max()
+        if not needle and len(beyond) == 1:
+            other = beyond[0]
+            x = int(np.setdiff1d(f[other], [a, c])[0])
+            edge_bx = (((f == b) & (np.roll(f, -1, axis=1) == x))
+                       | ((f == x) & (np.roll(f, -1, axis=1) == b))).any()
+            if not edge_bx:
+                f[face], f[other] = (a, x, b), (x, c, b)
+                continue
+        k = int(np.argmin(length2[face]))
+        keep, gone = f[face, k], f[face, (k + 1) % 3]
+        f[f == gone] = keep
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        _, inverse, count = np.unique(np.sort(f, axis=1), axis=0, return_inverse=True,
+                                      return_counts=True)
+        f = f[count[inverse.ravel()] == 1]          # a pair of coincident faces: a flat fin
+    used, f = np.unique(f.ravel(), return_inverse=True)
+    return v[used], f.reshape(-1, 3)
+
+
 def _half_edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(a, b, key) [3F] of faces [F, 3]: half-edge k of face i runs a → b = f[i, k] →
     f[i, (k+1) % 3]; ``key`` is the same for both half-edges of an undirected edge."""
@@ -529,7 +577,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float,
     except ValueError as exc:
         raise InputError(f"cannot remesh the surface ({exc}): it has edges shared by more "
                          "than two faces") from None
-    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+    return manifold(*repair_slivers(np.asarray(v, np.float64), np.asarray(f, np.int64)))
 
 
 def _triangles_and_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
