@@ -189,25 +189,28 @@ class RefineResult:
 def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float = 0.005,
                min_component: float = 0.05, wrap_radius: float = 0.0,
                grow: np.ndarray | None = None, grow_threshold: float = 0.2,
-               grow_beyond: float = 0.0, add: np.ndarray | None = None) -> trimesh.Trimesh:
+               grow_beyond: float = 0.0, add: np.ndarray | None = None,
+               shrink_radius: float = 0.0) -> trimesh.Trimesh:
     """The τ-surface of a volume [nx, ny, nz] (bounds [[x0, x1], ...] m) above the ground.
 
     With ``grow`` (a second volume of the same scan on the same grid, e.g. its
     backprojection) the occupied set (normalised |volume| > ``threshold``) is first grown by
     :func:`grow_occupancy` (``grow_threshold``, ``z_min``, ``grow_beyond`` m). With
-    ``wrap_radius`` > 0 (m) it is then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
+    ``shrink_radius`` > 0 (m) it is then shrunk (:func:`shrink_occupancy`: thick bodies eroded,
+    thin parts kept). With ``wrap_radius`` > 0 (m) it is then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
     shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
     surface closes above the ground; components with fewer than ``min_component`` × the
     largest's faces are dropped (isolated blobs of the volume).
     """
     from .export import mesh_from_volume, normalized_magnitude, voxel_axes
     vol = np.array(volume, copy=True)
-    if not (np.isfinite(wrap_radius) and wrap_radius >= 0):
-        raise InputError(f"wrap radius: must be >= 0 m, got {wrap_radius}")
+    for name, radius in (("wrap", wrap_radius), ("shrink", shrink_radius)):
+        if not (np.isfinite(radius) and radius >= 0):
+            raise InputError(f"{name} radius: must be >= 0 m, got {radius}")
     z = voxel_axes(bounds, vol.shape)[2]
     if add is not None and np.shape(add) != vol.shape:
         raise InputError(f"the added voxels' grid {np.shape(add)} differs from the start's {vol.shape}")
-    if grow is not None or wrap_radius > 0 or add is not None:
+    if grow is not None or wrap_radius > 0 or add is not None or shrink_radius > 0:
         b = np.asarray(bounds, np.float64)
         spacing = (b[:, 1] - b[:, 0]) / np.maximum(np.array(vol.shape) - 1, 1)
         occupied = normalized_magnitude(vol, "minmax") > threshold
@@ -219,6 +222,8 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
                                       grow_threshold, z >= z_min, spacing, grow_beyond)
         if add is not None:
             occupied = occupied | np.asarray(add, bool)
+        if shrink_radius > 0:
+            occupied = shrink_occupancy(occupied, spacing, shrink_radius)
         if wrap_radius > 0:
             occupied = wrap_occupancy(occupied, spacing, wrap_radius)
         vol, threshold = occupied.astype(np.float32), 0.5
@@ -288,6 +293,38 @@ def wrap_occupancy(occupied: np.ndarray, spacing, radius: float,
     wrapped = solid.drop_small_components(occupied | ball_closing(occupied, spacing, radius),
                                           min_fraction)
     return solid.fill_enclosed(wrapped, True)
+
+
+def shrink_occupancy(occupied: np.ndarray, spacing, radius: float) -> np.ndarray:
+    """bool [nx, ny, nz]: ``occupied`` eroded by a Euclidean ball of ``radius`` (m; ``spacing``
+    [3] m per voxel), the ground below the grid's lowest plane counting as occupied (an object
+    standing on it keeps its base), with its thin parts kept: a part that the opening at the
+    same radius removes (thinner than about 2 × ``radius``) and that reaches farther than
+    2 × ``radius`` from the eroded body (the Table-2 bunny's ears; not the rim a box's edges
+    leave) is added back as it was, with the occupied voxels within ``radius`` of it (its
+    foot on the body). The box's faces are not treated as empty.
+
+    The use (``recon refine --shrink``): the NBP solids are fat, their faces 5–8 mm outside the
+    object (docs/refine.md "Shrunk starts"), more than the fit pulls back."""
+    from scipy import ndimage
+    occupied = np.asarray(occupied, bool)
+    if radius <= 0 or not occupied.any():
+        return occupied.copy()
+    spacing = np.asarray(spacing, np.float64)
+    below = int(np.ceil(radius / spacing[2])) + 1
+    padded = np.concatenate([np.ones(occupied.shape[:2] + (below,), bool), occupied], axis=2)
+    eroded = ndimage.distance_transform_edt(padded, sampling=spacing) > radius
+    if not eroded[:, :, below:].any():
+        return occupied.copy()                   # all of it thin: kept as it is
+    from_body = ndimage.distance_transform_edt(~eroded, sampling=spacing)[:, :, below:]
+    eroded = eroded[:, :, below:]
+    thin = occupied & ~(from_body <= radius)     # what the opening removes
+    labels, _ = ndimage.label(thin, structure=np.ones((3, 3, 3)))
+    far = np.unique(labels[thin & (from_body > 2 * radius)])
+    kept = np.isin(labels, far[far > 0])
+    if kept.any():
+        kept |= occupied & (ndimage.distance_transform_edt(~kept, sampling=spacing) <= radius)
+    return eroded | kept
 
 
 def ball_closing(occupied: np.ndarray, spacing, radius: float) -> np.ndarray:

@@ -499,7 +499,8 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
            "test").write(tmp_path / "shell.h5")
     out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
-                 "--wrap", "0,1", "--smooth", "0", "--grow-unexplained", "0", "--no-ground",
+                 "--wrap", "0,1", "--smooth", "0", "--shrink", "0", "--grow-unexplained", "0",
+                 "--no-ground",
                  "--envelope-steps", "1",
                  "--waveform-steps", "2",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
@@ -847,7 +848,8 @@ def test_refine_command_writes_the_mesh_seated(ball_scan, tmp_path):
            "test").write(tmp_path / "ball.h5")
     out, hist = tmp_path / "seated.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "ball.h5"), "--out", str(out),
-                 "--wrap", "0", "--smooth", "0", "--grow-unexplained", "0", "--no-ground", "--seat",
+                 "--wrap", "0", "--smooth", "0", "--shrink", "0",
+                 "--grow-unexplained", "0", "--no-ground", "--seat",
                  "--z-min", "0.045", "--envelope-steps", "1", "--waveform-steps", "1",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
                  "--no-progress"]) == 0
@@ -1054,6 +1056,67 @@ def test_the_envelope_misfit_keeps_the_smoothed_start_when_it_is_closer(mi, ball
     closer = abs(_radius_error(smooth.vertices)) < abs(_radius_error(plain.vertices))
     lower = smooth.stage_misfit("envelope") < plain.stage_misfit("envelope")
     assert closer == smoothed_wins and lower == smoothed_wins
+
+
+# ------------------------------------------------------------------------ shrunk starts
+
+def test_shrink_erodes_a_body_from_its_sides_and_top_keeps_its_base_and_a_thin_rod():
+    """A 10-voxel cube standing on the grid's lowest plane with a one-voxel rod on top, shrunk
+    by 1.5 voxels: the cube loses its outer layer on the four sides and the top, edges and
+    corners included (its base stays on the ground: the ground counts as occupied; fails
+    without), the rod, thinner than twice the radius and reaching far from the body, is kept
+    whole and joined to it (fails without the thin parts added back), with the cube's top
+    voxels within the radius of it (its foot)."""
+    occ = np.zeros((20, 20, 24), bool)
+    occ[5:15, 5:15, 0:10] = True
+    occ[10, 10, 10:18] = True                                       # a rod on top
+    out = refine.shrink_occupancy(occ, (2e-3, 2e-3, 2e-3), 3e-3)
+    body = np.zeros_like(occ)
+    body[6:14, 6:14, 0:9] = True
+    foot = np.zeros_like(occ)
+    foot[9:12, 10, 9] = foot[10, 9:12, 9] = True                    # within 3 mm of the rod
+    foot[10, 10, 10:18] = True
+    np.testing.assert_array_equal(out, body | foot)
+    np.testing.assert_array_equal(refine.shrink_occupancy(occ, (2e-3,) * 3, 0.0), occ)
+
+
+def test_refine_command_adds_the_shrunk_start_as_a_candidate(ball_scan, tmp_path, capsys):
+    """A volume --init gets, by default, the unwrapped start shrunk by --shrink 0.5 range
+    resolutions and smoothed as a candidate ranked with the others (named
+    shrink0.5-smooth1); its start lies inside the plain one; --shrink 0 adds none, a mesh
+    --init refuses --shrink in one line."""
+    import json
+    from recon.cli import main
+    from recon.commands import refine as command
+    from sonarsim.dataset import Volume
+    b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
+    ball = np.zeros((26, 26, 26), np.complex64)
+    x, y, z = np.meshgrid(*(np.linspace(*b[a], 26) for a in range(3)), indexing="ij")
+    ball[np.sqrt(x ** 2 + y ** 2 + (z - 0.06) ** 2) < 0.036] = 1.0     # 6 mm too large
+    Volume(volume=ball, bounds=b, method="test").write(tmp_path / "start.h5")
+    out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
+    args = ["refine", str(ball_scan), "--init", str(tmp_path / "start.h5"), "--out", str(out),
+            "--no-ground", "--envelope-steps", "1", "--waveform-steps", "1", "--pings", "::2",
+            "--edge-length", "0.01", "--history", str(hist), "--no-progress", "--wrap", "0",
+            "--grow-unexplained", "0"]
+    assert main([*args, "--keep-candidates"]) == 0
+    cands = json.loads(hist.read_text())["candidates"]
+    assert [(c["wrap"], c["smooth"], c["shrink"]) for c in cands] == [
+        (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 1.0, float(command.DEFAULT_SHRINK))]
+    centre = [0.0, 0.0, 0.06]
+    radius = {name: np.linalg.norm(trimesh.load(tmp_path / f"refined.{name}.start.ply").vertices
+                                   - centre, axis=1).mean()
+              for name in ("smooth1", "shrink0.5-smooth1")}
+    assert radius["shrink0.5-smooth1"] < radius["smooth1"] - 0.003
+    assert main([*args, "--force", "--shrink", "0", "--smooth", "0"]) == 0
+    assert [c["shrink"] for c in json.loads(hist.read_text())["candidates"]] == [0.0]
+    trimesh.creation.icosphere(2, radius=0.03).export(tmp_path / "m.ply")
+    capsys.readouterr()
+    mesh_args = ["refine", str(ball_scan), "--init", str(tmp_path / "m.ply"), "--out", str(out),
+                 "--no-ground", "--no-progress"]
+    assert main([*mesh_args, "--force", "--shrink", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "--shrink applies to a volume" in err and len(err.strip().splitlines()) == 1
 
 
 # ------------------------------------------------------------------------ the affine stage

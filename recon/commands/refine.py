@@ -17,6 +17,7 @@ OUTPUT_SUFFIXES = {"history": (".json",)}
 GROW_THRESHOLD = 0.2           # --grow-threshold's default
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 DEFAULT_SMOOTH = "1"       # and the unwrapped start smoothed once more (docs/refine.md "Smoothed starts")
+DEFAULT_SHRINK = "0.5"     # a volume --init: and the unwrapped start shrunk, then smoothed (docs/refine.md "Shrunk starts")
 DEFAULT_UNEXPLAINED = 0.2  # and the kept start grown by the unexplained data (docs/refine.md
                            # "Grown from the unexplained data")
 SEAT_BY_DEFAULT = True     # a volume --init's mesh continued down to the ground (docs/refine.md
@@ -76,6 +77,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "fit does not remove; one candidate per L, ranked with the --wrap "
                              f"starts by the envelope misfit; 0: none (default {DEFAULT_SMOOTH}; "
                              "docs/refine.md 'Smoothed starts')")
+    parser.add_argument("--shrink", default=None, metavar="F[,F...]",
+                        help="volume --init: also refine from the unwrapped start's occupied set "
+                             "shrunk by F x the range resolution c/2B (thick bodies eroded by a "
+                             "ball of that radius, the ground below counting as occupied; parts "
+                             "thinner than about twice it kept as they are), then smoothed at "
+                             "each --smooth level: the NBP solids are fat, their faces 5-8 mm "
+                             "outside the object; one candidate per F and level, ranked with the "
+                             "others by the envelope misfit; 0: none (default "
+                             f"{DEFAULT_SHRINK} for a volume; docs/refine.md 'Shrunk starts')")
     parser.add_argument("--grow", type=Path, default=None, metavar="VOLUME",
                         help="volume --init: a second volume of the same scan on the same grid "
                              "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
@@ -173,14 +183,23 @@ def smoothing_levels(text: str) -> list[float]:
 def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> list[dict]:
     """The starts to refine: ``specs`` (:func:`candidate_specs`) each with its ``"mesh"``: the
     :func:`initial_meshes` for ``smooth`` 0, and for a level L > 0 the unwrapped start smoothed
-    by :func:`recon.refine.smoothed_start` (one :func:`initial_meshes` call makes them all)."""
+    by :func:`recon.refine.smoothed_start` (one :func:`initial_meshes` call makes them all); a
+    spec with ``shrink`` F > 0 starts from the unwrapped start shrunk by F (one call per F),
+    smoothed at its level."""
     from ..refine import smoothed_start
+    plain = [spec for spec in specs if not spec.get("shrink")]
     if args.init.suffix.lower() == ".h5":      # every wrap factor and 0 for the smoothed ones, once
-        wraps = ",".join(repr(k) for k in dict.fromkeys(spec["wrap"] for spec in specs))
+        wraps = ",".join(repr(k) for k in dict.fromkeys(spec["wrap"] for spec in plain))
         args = argparse.Namespace(**{**vars(args), "wrap": wraps})
-    starts = dict(initial_meshes(args, dataset))
-    return [{**spec, "mesh": smoothed_start(starts[0.0], spec["smooth"], edge_length)
-             if spec["smooth"] else starts[spec["wrap"]]} for spec in specs]
+    starts = dict(initial_meshes(args, dataset)) if plain else {}
+    shrunk = {f: initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}), dataset,
+                                shrink=f)[0][1]
+              for f in dict.fromkeys(spec["shrink"] for spec in specs if spec.get("shrink"))}
+
+    def unsmoothed(spec):
+        return shrunk[spec["shrink"]] if spec.get("shrink") else starts[spec["wrap"]]
+    return [{**spec, "mesh": smoothed_start(unsmoothed(spec), spec["smooth"], edge_length)
+             if spec["smooth"] else unsmoothed(spec)} for spec in specs]
 
 
 def keeps_creases(args, start: dict) -> bool:
@@ -192,22 +211,42 @@ def keeps_creases(args, start: dict) -> bool:
 
 
 def candidate_specs(args) -> list[dict]:
-    """``[{"wrap": K, "smooth": L}]``, the candidates ``--wrap``, ``--smooth`` and ``--init``
-    ask for, before any mesh is made (so that bad values and existing outputs are refused
-    first): the wrap factors (0 for a mesh), then one unwrapped start per smoothing level."""
+    """``[{"wrap": K, "smooth": L, "shrink": F}]``, the candidates ``--wrap``, ``--smooth``,
+    ``--shrink`` and ``--init`` ask for, before any mesh is made (so that bad values and
+    existing outputs are refused first): the wrap factors (0 for a mesh), then one unwrapped
+    start per smoothing level, then per shrink factor the shrunk start at each level (unsmoothed
+    when there is none)."""
     levels = smoothing_levels(args.smooth)
     if args.init.suffix.lower() == ".h5":
         factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
+        shrinks = shrink_factors(args)
     else:
-        factors = [0.0]
-    return ([{"wrap": k, "smooth": 0.0} for k in dict.fromkeys(factors)]
-            + [{"wrap": 0.0, "smooth": lam} for lam in levels])
+        factors, shrinks = [0.0], shrink_factors(args)
+    return ([{"wrap": k, "smooth": 0.0, "shrink": 0.0} for k in dict.fromkeys(factors)]
+            + [{"wrap": 0.0, "smooth": lam, "shrink": 0.0} for lam in levels]
+            + [{"wrap": 0.0, "smooth": lam, "shrink": f}
+               for f in shrinks for lam in (levels or [0.0])])
 
 
-def initial_meshes(args, dataset, add=None) -> list[tuple[float, object]]:
+def shrink_factors(args) -> list[float]:
+    """The ``--shrink`` factors that add candidates (those > 0, each once): its value, else
+    :data:`DEFAULT_SHRINK` for a volume ``--init``; refused for a mesh (it has no occupied set)."""
+    is_volume = args.init.suffix.lower() == ".h5"
+    text = getattr(args, "shrink", None)
+    if text is None:
+        text = DEFAULT_SHRINK if is_volume else "0"
+    values = [v for v in dict.fromkeys(wrap_factors(text, "--shrink", "F")) if v > 0]
+    if values and not is_volume:
+        raise InputError("--shrink applies to a volume --init (.h5), not to a mesh")
+    return values
+
+
+def initial_meshes(args, dataset, add=None, shrink: float = 0.0) -> list[tuple[float, object]]:
     """[(wrap factor, start mesh)] of ``--init``: a volume's iso-surface wrapped at each
     ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file; ``add``:
-    voxels (bool, the volume's grid) united with the volume's occupied set first."""
+    voxels (bool, the volume's grid) united with the volume's occupied set first; ``shrink``:
+    the occupied set then shrunk by that factor × the range resolution
+    (:func:`recon.refine.shrink_occupancy`)."""
     from ..refine import range_resolution, start_mesh
     import numpy as np
     path = args.init
@@ -243,7 +282,7 @@ def initial_meshes(args, dataset, add=None) -> list[tuple[float, object]]:
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
                                wrap_radius=k * resolution, grow=grow,
                                grow_threshold=args.grow_threshold, grow_beyond=beyond,
-                               add=add))
+                               add=add, shrink_radius=shrink * resolution))
                 for k in factors]
     if any(given or ()) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
@@ -266,12 +305,14 @@ def choose_candidate(candidates: list[dict]) -> int:
 
 
 def candidate_label(candidate: dict) -> str:
-    """``wrapK`` or ``smoothL``, prefixed ``grown-`` for the start grown by the unexplained
-    data: a candidate's name in file names and messages."""
+    """``wrapK``, ``smoothL``, ``shrinkF-smoothL`` or ``shrinkF``, prefixed ``grown-`` for the
+    start grown by the unexplained data: a candidate's name in file names and messages."""
     if candidate.get("smooth", 0):
         name = f"smooth{candidate['smooth']:g}"
     else:
         name = f"wrap{candidate['wrap']:g}"
+    if candidate.get("shrink", 0):
+        name = f"shrink{candidate['shrink']:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
     return f"grown-{name}" if candidate.get("grown", 0) else name
 
 
@@ -335,13 +376,14 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
                                       "pings": n_pings})}
     if not added.any():
         return None, record
-    smooth = chosen["smooth"]
-    wrap = 0.0 if smooth else chosen["wrap"]
+    smooth, shrink = chosen["smooth"], chosen.get("shrink", 0.0)
+    wrap = 0.0 if smooth or shrink else chosen["wrap"]
     [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": repr(wrap)}),
-                                 dataset, add=added)
+                                 dataset, add=added, shrink=shrink)
     if smooth:
         mesh = smoothed_start(mesh, smooth, settings.edge_length)
-    return {"wrap": chosen["wrap"], "smooth": smooth, "grown": level, "mesh": mesh}, record
+    return {"wrap": chosen["wrap"], "smooth": smooth, "shrink": shrink, "grown": level,
+            "mesh": mesh}, record
 
 
 def checkpoint_store(args, dataset, settings, specs: list, level: float):
@@ -464,6 +506,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
             if store is not None:
                 store.save(name, res)
         candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
+                           "shrink": start.get("shrink", 0.0),
                            "grown": start.get("grown", 0.0),
                            "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
@@ -502,6 +545,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
                                        "wrap": chosen["wrap"], "smooth": chosen["smooth"],
+                                       "shrink": chosen["shrink"],
                                        "grown": chosen["grown"],
                                        "seat": None if z_seat is None else {
                                            "below_m": z_seat, "vertices_moved": moved},
