@@ -518,10 +518,12 @@ def repair_slivers(vertices: np.ndarray, faces: np.ndarray, ratio: float = 1e-3
     shortest edge collapsed instead (the faces left with a repeated corner go, and so do both
     faces of a coincident pair; unused vertices are dropped).
 
-    Why: ``remesh_botsch`` with feature edges can leave faces of exactly zero area along a
-    straight crease, and the renderer's gradient at their corners is NaN (Mitsuba's vertex
-    normals weight a face by its corner angles, whose derivative is infinite at 0 and π);
-    LargeSteps then spreads the NaN over the whole mesh and the next render fails."""
+    Why: ``remesh_botsch`` with feature edges can leave faces of (near) zero area along a
+    straight crease, and on such a mesh the renderer's vertex gradient was NaN at some of their
+    corners (14 of 4 107 vertices on a smoothed NBP start of the Table-2 cube; which step of
+    the renderer makes it is not isolated: a lone zero-area cap on a box gives finite
+    gradients); LargeSteps then spreads the NaN over the whole mesh and the next render fails
+    (docs/refine.md "Slivers")."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).copy()
     for _ in range(2 * len(f)):
