@@ -217,12 +217,11 @@ def candidate_specs(args) -> list[dict]:
     existing outputs are refused first): the wrap factors (0 for a mesh), then one unwrapped
     start per smoothing level, then per shrink factor the shrunk start at each level (unsmoothed
     when there is none)."""
-    levels = smoothing_levels(args.smooth)
+    levels, shrinks = smoothing_levels(args.smooth), shrink_factors(args)
     if args.init.suffix.lower() == ".h5":
         factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
-        shrinks = shrink_factors(args)
     else:
-        factors, shrinks = [0.0], shrink_factors(args)
+        factors = [0.0]
     return ([{"wrap": k, "smooth": 0.0, "shrink": 0.0} for k in dict.fromkeys(factors)]
             + [{"wrap": 0.0, "smooth": lam, "shrink": 0.0} for lam in levels]
             + [{"wrap": 0.0, "smooth": lam, "shrink": f}
