@@ -832,6 +832,16 @@ class _Objective:
 
 # ------------------------------------------------------------------------ the solver
 
+def finite_gradient(mi, grad) -> tuple:
+    """(``grad`` (a Dr.Jit Float) with its non-finite entries set to 0, their count)."""
+    g = np.asarray(grad.numpy(), np.float32).ravel()
+    bad = ~np.isfinite(g)
+    if not bad.any():
+        return grad, 0
+    g[bad] = 0.0
+    return mi.Float(g), int(bad.sum())
+
+
 def _cosine_rate(lr: float, frac: float) -> float:
     """The step of a stage at ``frac`` ∈ [0, 1] of its steps: ``lr`` decaying to ``lr``/10
     along a half cosine."""
@@ -913,6 +923,8 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
 
     samples_per_metre = 2.0 * float(dataset.fs) / float(dataset.sound_speed)   # one-way range
 
+    nonfinite = {"steps": 0, "entries": 0}
+
     def recent_loss(n_steps: int) -> float:
         """Mean loss of the last ``n_steps`` steps, at most two passes over the batches (logs)."""
         return float(np.mean([h["loss"] for h in history[-min(n_steps, 2 * n_batches):]]))
@@ -925,11 +937,32 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
         if step % n_batches == 0:
             order = rng.permutation(n_batches)
         b = int(order[step % n_batches])
-        hist = model.render(vertices_ad, albedo_ad, batches[b], settings.seed * 100_003 + 2 * step)
+        # The renderer's gradient is taken with respect to detached copies, cleared of
+        # non-finite entries (a degenerate triangle's corners, docs/refine.md "Non-finite
+        # gradients"), then carried on to the parameters: LargeSteps' solve would otherwise
+        # spread one NaN over its whole component, and Adam keep it in its moments.
+        v_leaf, a_leaf = dr.detach(vertices_ad), dr.detach(albedo_ad)
+        dr.enable_grad(v_leaf, a_leaf)
+        hist = model.render(v_leaf, a_leaf, batches[b], settings.seed * 100_003 + 2 * step)
         h = hist.numpy().astype(np.float64).sum(axis=1)
         loss, alpha, grad = objective(stage, h, b, batches[b], sigma)
         g = np.repeat(grad[:, None, :], hist.shape[1], axis=1).astype(np.float32)
         dr.backward(dr.sum(hist * mi.TensorXf(g), axis=None))
+        carried, bad = None, 0
+        for leaf, param in ((v_leaf, vertices_ad), (a_leaf, albedo_ad)):
+            g_leaf, n_bad = finite_gradient(mi, dr.grad(leaf))
+            bad += n_bad
+            if dr.grad_enabled(param):
+                term = dr.sum(param * g_leaf, axis=None)
+                carried = term if carried is None else carried + term
+        if carried is not None:
+            dr.backward(carried)
+        if bad:
+            nonfinite["steps"] += 1
+            nonfinite["entries"] += bad
+            if log is not None and nonfinite["steps"] == 1:
+                log(f"{stage} step {step}: {bad} non-finite gradient entries set to 0 "
+                    "(degenerate triangles)")
         return loss, alpha
 
     with tempfile.TemporaryDirectory(prefix="refine-") as workdir:
@@ -1020,8 +1053,10 @@ def solve(dataset, init: trimesh.Trimesh, settings: RefineSettings = RefineSetti
                             f"{len(faces)} faces, {time.perf_counter() - t0:.0f} s")
         finally:
             bar.close()
+    if not (np.isfinite(vertices).all() and np.isfinite(log_albedo)):
+        raise InputError("the fit diverged: its vertices or albedo are not finite")
     return RefineResult(vertices, faces, float(np.exp(log_albedo)) if fit_albedo else None,
                         history, {**asdict(settings), "pings": int(len(index)),
-                                  "batches": int(n_batches),
+                                  "batches": int(n_batches), "nonfinite_gradients": nonfinite,
                                   "ground": ground, "oversample": k, "support": support},
                         affine)

@@ -541,6 +541,30 @@ def test_default_wrap_is_three_starts_for_a_volume_and_none_for_a_mesh(ball_scan
     assert [k for k, _ in starts] == [0.0]
 
 
+def test_a_solid_keeps_its_small_separate_part_a_field_does_not(ball_scan, tmp_path):
+    """A volume of a large block and a small separate cube (under 5 % of the block's faces): as
+    an exported solid (params output = 'solid', whose floaters the solid already dropped) the
+    start keeps both parts; as a field the small one is dropped as a blob (fails when the
+    solid's parts are filtered like a field's)."""
+    from recon.commands import refine as command
+    from sonarsim.dataset import SonarDataset, Volume
+    ds = SonarDataset.read(ball_scan)
+    b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
+    vol = np.zeros((41, 41, 41), np.complex64)
+    vol[8:32, 8:32, 3:30] = 1
+    vol[36:39, 36:39, 20:23] = 1                                   # 27 voxels, apart
+    args = dict(threshold=0.5, z_min=0.005, wrap="0", grow=None, grow_threshold=0.2,
+                grow_beyond=0.0)
+    count = {}
+    for output in ("solid", "field"):
+        Volume(volume=vol, bounds=b, method="nbp", params={"output": output}).write(
+            tmp_path / f"{output}.h5")
+        [(_, mesh)] = command.initial_meshes(argparse.Namespace(init=tmp_path / f"{output}.h5",
+                                                                **args), ds)
+        count[output] = len(mesh.split(only_watertight=False))
+    assert count == {"solid": 2, "field": 1}
+
+
 @pytest.mark.parametrize("radius", [0.003, 0.0065, 0.009, 0.0125])
 def test_ball_closing_equals_scipy_binary_closing_with_the_ball(radius):
     """The distance-transform closing is the binary closing by the same Euclidean ball (the
@@ -1162,3 +1186,34 @@ def test_affine_stage_undoes_a_stretched_and_shifted_sphere(mi, ball_scan):
     assert [h["stage"] for h in result.history] == ["affine"] * 30
     np.testing.assert_allclose(np.asarray(result.affine["scale"]) * stretch, 1.0, atol=0.04)
 
+
+
+def test_an_infinite_gradient_entry_is_cleared_not_spread(mi, ball_scan, monkeypatch):
+    """A renderer gradient that is infinite at one vertex coordinate (as at a degenerate
+    triangle's corners) is set to 0 there: the fit stays finite, the other vertices still move
+    onto the sphere, and the result counts the cleared entries (one per step). Without the
+    clearing LargeSteps' solve turns it into NaN vertices and the next render fails."""
+    import drjit as dr
+    from sonarsim.dataset import SonarDataset
+    original = refine.RenderedScene.render
+
+    def poisoned(self, vertices, albedo, index, seed):
+        hist = original(self, vertices, albedo, index, seed)
+        weight = np.zeros(dr.width(vertices), np.float32)
+        weight[0] = np.inf
+        # value 0, derivative infinite with respect to the first vertex's x alone
+        nan_grad = dr.sum(dr.replace_grad(vertices * 0, vertices * mi.Float(weight)))
+        return mi.TensorXf(hist.array + nan_grad, hist.shape)
+
+    monkeypatch.setattr(refine.RenderedScene, "render", poisoned)
+    ds = SonarDataset.read(ball_scan)
+    start = trimesh.creation.icosphere(subdivisions=3, radius=0.035)
+    start.vertices += [0.0, 0.0, 0.06]
+    settings = refine.RefineSettings(affine_steps=0, envelope_steps=8, waveform_steps=4, lr=4e-3,
+                                     edge_length=8e-3, remesh_every=0, pings_per_batch=12,
+                                     surface_spacing=3e-3)
+    result = refine.solve(ds, start, settings, ground=None)
+    assert np.isfinite(result.vertices).all()
+    assert result.settings["nonfinite_gradients"] == {"steps": 12, "entries": 12}
+    assert _radius_error(result.vertices) < 0.5 * _radius_error(start.vertices)
+    assert np.ptp(result.vertices[:, 0]) < 0.95 * np.ptp(start.vertices[:, 0])   # x moves too
