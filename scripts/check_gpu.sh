@@ -13,7 +13,7 @@ root=$(pwd)
 # Run pytest from outside the checkout so that the installed sonarsim (with its plugins
 # package) is imported rather than the source folders.
 (cd /tmp && "$PY" -m pytest -q -p no:cacheprovider "$root/tests/test_differentiable.py" \
-    "$root/tests/test_nbp.py" "$root/tests/test_gradient_descent.py" \
+    "$root/tests/test_refine.py" "$root/tests/test_calibrate.py" "$root/tests/test_nbp.py" "$root/tests/test_gradient_descent.py" \
     "$root/tests/test_backprojection.py") || status=1
 if [ $# -ge 1 ]; then
     "$PY" benchmarks/bench_backends.py --compare "$1" || status=1
