@@ -176,3 +176,17 @@ def test_a_parameter_on_its_bound_is_reported(offset_scan, monkeypatch):
     res = calibrate.fit(offset_scan, GRID, free="time_offset", curvature=False)
     assert res.calibration.time_offset == pytest.approx(-5e-6, abs=1e-9)
     assert res.at_bounds == ("time_offset",)
+
+
+@pytest.mark.parametrize("free", ["time_offset", ("time_offset", "rig_forward")])
+def test_first_step_moves_the_steepest_parameter_by_one_display_unit(offset_scan, free):
+    """L-BFGS-B's first trial step within bounds is the gradient itself; the objective is
+    normalised so that it moves the parameter of the largest gradient by one display unit
+    (1 µs, 1 mm), whatever the gradient's size (a flat start, the real scan at z = 0.2 m, took
+    steps of 0.0004 µs and stopped there on a GPU). Fails when the normalisation is dropped."""
+    res = calibrate.fit(offset_scan, GRID, free=free, curvature=False, max_evaluations=3)
+    names = (free,) if isinstance(free, str) else free
+    idx = [calibrate.PARAMETERS.index(n) for n in names]
+    units = np.array([calibrate.UNITS[n][1] for n in names])
+    step = (np.asarray(res.history[1][2])[idx] - np.asarray(res.history[0][2])[idx]) * units
+    assert np.abs(step).max() == pytest.approx(1.0, rel=1e-6)
