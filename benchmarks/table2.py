@@ -642,7 +642,8 @@ def refine_key(options: tuple[str, ...]) -> str:
     from recon.unexplained import RESIDUAL_PINGS, UNEXPLAINED_BEYOND
     key = {"options": list(options), "settings": asdict(RefineSettings()),
            "wrap": command.DEFAULT_WRAP, "smooth": command.DEFAULT_SMOOTH,
-           "shrink": command.DEFAULT_SHRINK,
+           "shrink": command.DEFAULT_SHRINK, "seal": command.DEFAULT_SEAL,
+           "start": "a solid's parts all kept; non-finite gradients cleared",
            "seat": [command.SEAT_BY_DEFAULT, "z_min + voxel + lift"],
            "unexplained": [command.DEFAULT_UNEXPLAINED, RESIDUAL_PINGS, UNEXPLAINED_BEYOND]}
     return identity.digest(json.dumps(key, sort_keys=True, default=str), length=8)

@@ -499,7 +499,7 @@ def test_refine_command_keeps_the_wrap_start_with_the_lowest_misfit(ball_scan, t
            "test").write(tmp_path / "shell.h5")
     out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "shell.h5"), "--out", str(out),
-                 "--wrap", "0,1", "--smooth", "0", "--shrink", "0", "--grow-unexplained", "0",
+                 "--wrap", "0,1", "--smooth", "0", "--shrink", "0", "--seal", "0", "--grow-unexplained", "0",
                  "--no-ground",
                  "--envelope-steps", "1",
                  "--waveform-steps", "2",
@@ -872,7 +872,7 @@ def test_refine_command_writes_the_mesh_seated(ball_scan, tmp_path):
            "test").write(tmp_path / "ball.h5")
     out, hist = tmp_path / "seated.ply", tmp_path / "h.json"
     assert main(["refine", str(ball_scan), "--init", str(tmp_path / "ball.h5"), "--out", str(out),
-                 "--wrap", "0", "--smooth", "0", "--shrink", "0",
+                 "--wrap", "0", "--smooth", "0", "--shrink", "0", "--seal", "0",
                  "--grow-unexplained", "0", "--no-ground", "--seat",
                  "--z-min", "0.045", "--envelope-steps", "1", "--waveform-steps", "1",
                  "--pings", "::2", "--edge-length", "0.01", "--history", str(hist),
@@ -1122,7 +1122,7 @@ def test_refine_command_adds_the_shrunk_start_as_a_candidate(ball_scan, tmp_path
     args = ["refine", str(ball_scan), "--init", str(tmp_path / "start.h5"), "--out", str(out),
             "--no-ground", "--envelope-steps", "1", "--waveform-steps", "1", "--pings", "::2",
             "--edge-length", "0.01", "--history", str(hist), "--no-progress", "--wrap", "0",
-            "--grow-unexplained", "0"]
+            "--grow-unexplained", "0", "--seal", "0"]
     assert main([*args, "--keep-candidates"]) == 0
     cands = json.loads(hist.read_text())["candidates"]
     assert [(c["wrap"], c["smooth"], c["shrink"]) for c in cands] == [
@@ -1217,3 +1217,75 @@ def test_an_infinite_gradient_entry_is_cleared_not_spread(mi, ball_scan, monkeyp
     assert result.settings["nonfinite_gradients"] == {"steps": 12, "entries": 12}
     assert _radius_error(result.vertices) < 0.5 * _radius_error(start.vertices)
     assert np.ptp(result.vertices[:, 0]) < 0.95 * np.ptp(start.vertices[:, 0])   # x moves too
+
+
+def _box_with_a_tunnel_and_a_pit():
+    """A 12 × 12 × 12 cm box (5 mm voxels) on the ground with a 1-voxel tunnel entering one
+    side 3 cm above the ground (8 cm long) and a pit 8 cm wide and 1.5 cm deep in its top;
+    sensors on a ring of radius 0.5 m around it at heights 0.1–0.5 m."""
+    occ = np.zeros((40, 40, 40), bool)
+    occ[8:32, 8:32, 0:24] = True
+    occ[8:24, 12, 6] = False                    # the tunnel, open at the x = 8 face
+    occ[12:28, 12:28, 21:24] = False            # the pit, open upward
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    heights = np.linspace(0.1, 0.5, 5)
+    a, h = np.meshgrid(angles, heights)
+    sensors = np.stack([0.1 + 0.5 * np.cos(a.ravel()), 0.1 + 0.5 * np.sin(a.ravel()),
+                        h.ravel()], axis=1)     # relative to the grid's lower corner (m)
+    return occ, np.full(3, 0.005), sensors
+
+
+def test_seal_fills_a_tunnel_the_sensors_do_not_see_and_keeps_an_open_pit():
+    """The sealed occupancy fills the side tunnel (hidden from nearly every sensor) and leaves
+    the pit open to the sensors (seen from most of them) open, at quorum 0.6; quorum 1
+    still fills the tunnel's deep part (fails when the hidden voxels are not added); a quorum of 0.2 fills
+    most of the pit (the reason it is a candidate, ranked by the data)."""
+    occ, spacing, sensors = _box_with_a_tunnel_and_a_pit()
+    tunnel = np.zeros_like(occ)
+    tunnel[8:24, 12, 6] = True
+    pit = np.zeros_like(occ)
+    pit[12:28, 12:28, 21:24] = True
+    sealed = refine.seal_occupancy(occ, spacing, sensors, 0.6)
+    assert sealed[occ].all()                              # nothing removed
+    assert sealed[tunnel].all()
+    assert sealed[pit].mean() < 0.2                       # the pit stays (almost all) open
+    assert not sealed[20, 20, 21:24].any()                # its middle wholly
+    assert refine.seal_occupancy(occ, spacing, sensors, 1.0)[14:24, 12, 6].all()   # deep part
+    assert refine.seal_occupancy(occ, spacing, sensors, 0.2)[pit].mean() > 0.7
+
+
+def test_refine_command_adds_the_sealed_start_as_a_candidate(ball_scan, tmp_path, capsys):
+    """--seal 0.6 adds the unwrapped start sealed at that quorum as a candidate (named seal0.6,
+    its start written with --keep-candidates); by default (off) none is added; a quorum above
+    1 and a mesh --init are refused in one line."""
+    import json
+    from recon.cli import main
+    from recon.commands import refine as command
+    from sonarsim.dataset import Volume
+    b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
+    ball = np.zeros((26, 26, 26), np.complex64)
+    x, y, z = np.meshgrid(*(np.linspace(*b[a], 26) for a in range(3)), indexing="ij")
+    ball[np.sqrt(x ** 2 + y ** 2 + (z - 0.06) ** 2) < 0.033] = 1.0
+    Volume(volume=ball, bounds=b, method="test").write(tmp_path / "start.h5")
+    out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
+    args = ["refine", str(ball_scan), "--init", str(tmp_path / "start.h5"), "--out", str(out),
+            "--no-ground", "--envelope-steps", "1", "--waveform-steps", "1", "--pings", "::2",
+            "--edge-length", "0.01", "--history", str(hist), "--no-progress", "--wrap", "0",
+            "--grow-unexplained", "0", "--smooth", "0", "--shrink", "0"]
+    assert main([*args, "--keep-candidates", "--seal", "0.6"]) == 0
+    cands = json.loads(hist.read_text())["candidates"]
+    assert [(c["wrap"], c["seal"]) for c in cands] == [(0.0, 0.0), (0.0, 0.6)]
+    assert (tmp_path / "refined.seal0.6.start.ply").is_file()
+    assert command.DEFAULT_SEAL == "0"
+    assert main([*args, "--force"]) == 0
+    assert [c["seal"] for c in json.loads(hist.read_text())["candidates"]] == [0.0]
+    capsys.readouterr()
+    assert main([*args, "--force", "--seal", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "--seal: each quorum must be in (0, 1]" in err and len(err.strip().splitlines()) == 1
+    trimesh.creation.icosphere(2, radius=0.03).export(tmp_path / "m.ply")
+    mesh_args = ["refine", str(ball_scan), "--init", str(tmp_path / "m.ply"), "--out", str(out),
+                 "--no-ground", "--no-progress"]
+    assert main([*mesh_args, "--force", "--seal", "0.6"]) == 2
+    err = capsys.readouterr().err
+    assert "--seal applies to a volume" in err and len(err.strip().splitlines()) == 1

@@ -206,7 +206,7 @@ def test_refine_command_adds_and_keeps_the_start_grown_by_the_unexplained_data(
     init = _volume_of([BIG], _grid(), tmp_path / "big.h5")
     out, hist = tmp_path / "refined.ply", tmp_path / "h.json"
     args = ["refine", str(snowman_scan), "--init", str(init), "--out", str(out), "--no-ground",
-            "--wrap", "0", "--smooth", "0", "--shrink", "0",
+            "--wrap", "0", "--smooth", "0", "--shrink", "0", "--seal", "0",
             "--affine-steps", "0", "--envelope-steps", "8",
             "--waveform-steps", "0", "--lr", "1e-3",
             "--pings-per-batch", "36", "--edge-length", "0.01", "--surface-spacing", "0.003",
@@ -252,7 +252,7 @@ def test_refine_command_resumes_from_its_checkpoint(snowman_scan, tmp_path, caps
     init = _volume_of([BIG], _grid(), tmp_path / "big.h5")
     ck = tmp_path / "ck"
     args = ["refine", str(snowman_scan), "--init", str(init), "--no-ground", "--wrap", "0",
-            "--smooth", "0", "--shrink", "0",
+            "--smooth", "0", "--shrink", "0", "--seal", "0",
             "--affine-steps", "0", "--envelope-steps", "8",
             "--waveform-steps", "0", "--lr", "1e-3", "--pings-per-batch", "36",
             "--edge-length", "0.01", "--surface-spacing", "0.003", "--no-progress",

@@ -18,6 +18,8 @@ GROW_THRESHOLD = 0.2           # --grow-threshold's default
 DEFAULT_WRAP = "0,3,6"     # a volume --init: three starts, the data keep one (docs/refine.md "Defaults")
 DEFAULT_SMOOTH = "1"       # and the unwrapped start smoothed once more (docs/refine.md "Smoothed starts")
 DEFAULT_SHRINK = "0.5"     # a volume --init: and the unwrapped start shrunk, then smoothed (docs/refine.md "Shrunk starts")
+DEFAULT_SEAL = "0"         # off: the sealed start (where the scan does not see) was never kept
+                           # by the misfit on the bunny (docs/refine.md "Sealed starts")
 DEFAULT_UNEXPLAINED = 0.2  # and the kept start grown by the unexplained data (docs/refine.md
                            # "Grown from the unexplained data")
 SEAT_BY_DEFAULT = True     # a volume --init's mesh continued down to the ground (docs/refine.md
@@ -87,6 +89,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "outside the object; one candidate per F and level, ranked with the "
                              "others by the envelope misfit; 0: none (default "
                              f"{DEFAULT_SHRINK} for a volume; docs/refine.md 'Shrunk starts')")
+    parser.add_argument("--seal", default=None, metavar="Q[,Q...]",
+                        help="volume --init: also refine from the unwrapped start's occupied set "
+                             "with the empty voxels it hides from a fraction Q of the scan's "
+                             "sensor positions added (channels and pockets inside the shell whose "
+                             "walls no ping sees; a concavity open to the sensors is seen from "
+                             "about half of them); one candidate per Q in (0, 1], ranked with "
+                             f"the others by the envelope misfit; 0: none (default {DEFAULT_SEAL} "
+                             "for a volume; docs/refine.md 'Sealed starts')")
     parser.add_argument("--grow", type=Path, default=None, metavar="VOLUME",
                         help="volume --init: a second volume of the same scan on the same grid "
                              "(e.g. `recon backproject`'s): its parts above --grow-threshold of "
@@ -186,9 +196,10 @@ def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> li
     :func:`initial_meshes` for ``smooth`` 0, and for a level L > 0 the unwrapped start smoothed
     by :func:`recon.refine.smoothed_start` (one :func:`initial_meshes` call makes them all); a
     spec with ``shrink`` F > 0 starts from the unwrapped start shrunk by F (one call per F),
-    smoothed at its level."""
+    smoothed at its level; one with ``seal`` Q > 0 from the unwrapped start sealed at Q (one
+    call per Q)."""
     from ..refine import smoothed_start
-    plain = [spec for spec in specs if not spec.get("shrink")]
+    plain = [spec for spec in specs if not (spec.get("shrink") or spec.get("seal"))]
     if args.init.suffix.lower() == ".h5":      # every wrap factor and 0 for the smoothed ones, once
         wraps = ",".join(repr(k) for k in dict.fromkeys(spec["wrap"] for spec in plain))
         args = argparse.Namespace(**{**vars(args), "wrap": wraps})
@@ -196,8 +207,13 @@ def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> li
     shrunk = {f: initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}), dataset,
                                 shrink=f)[0][1]
               for f in dict.fromkeys(spec["shrink"] for spec in specs if spec.get("shrink"))}
+    sealed = {q: initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}), dataset,
+                                seal=q)[0][1]
+              for q in dict.fromkeys(spec["seal"] for spec in specs if spec.get("seal"))}
 
     def unsmoothed(spec):
+        if spec.get("seal"):
+            return sealed[spec["seal"]]
         return shrunk[spec["shrink"]] if spec.get("shrink") else starts[spec["wrap"]]
     return [{**spec, "mesh": smoothed_start(unsmoothed(spec), spec["smooth"], edge_length)
              if spec["smooth"] else unsmoothed(spec)} for spec in specs]
@@ -212,20 +228,24 @@ def keeps_creases(args, start: dict) -> bool:
 
 
 def candidate_specs(args) -> list[dict]:
-    """``[{"wrap": K, "smooth": L, "shrink": F}]``, the candidates ``--wrap``, ``--smooth``,
-    ``--shrink`` and ``--init`` ask for, before any mesh is made (so that bad values and
-    existing outputs are refused first): the wrap factors (0 for a mesh), then one unwrapped
-    start per smoothing level, then per shrink factor the shrunk start at each level (unsmoothed
-    when there is none)."""
+    """``[{"wrap": K, "smooth": L, "shrink": F, "seal": Q}]``, the candidates ``--wrap``,
+    ``--smooth``, ``--shrink``, ``--seal`` and ``--init`` ask for, before any mesh is made (so
+    that bad values and existing outputs are refused first): the wrap factors (0 for a mesh),
+    then one unwrapped start per smoothing level, then per shrink factor the shrunk start at
+    each level (unsmoothed when there is none), then per seal quorum the sealed start
+    (unsmoothed)."""
     levels, shrinks = smoothing_levels(args.smooth), shrink_factors(args)
+    seals = seal_quorums(args)
     if args.init.suffix.lower() == ".h5":
         factors = wrap_factors(DEFAULT_WRAP if args.wrap is None else args.wrap)
     else:
         factors = [0.0]
-    return ([{"wrap": k, "smooth": 0.0, "shrink": 0.0} for k in dict.fromkeys(factors)]
-            + [{"wrap": 0.0, "smooth": lam, "shrink": 0.0} for lam in levels]
-            + [{"wrap": 0.0, "smooth": lam, "shrink": f}
-               for f in shrinks for lam in (levels or [0.0])])
+    specs = ([{"wrap": k, "smooth": 0.0, "shrink": 0.0} for k in dict.fromkeys(factors)]
+             + [{"wrap": 0.0, "smooth": lam, "shrink": 0.0} for lam in levels]
+             + [{"wrap": 0.0, "smooth": lam, "shrink": f}
+                for f in shrinks for lam in (levels or [0.0])])
+    return ([{**spec, "seal": 0.0} for spec in specs]
+            + [{"wrap": 0.0, "smooth": 0.0, "shrink": 0.0, "seal": q} for q in seals])
 
 
 def shrink_factors(args) -> list[float]:
@@ -241,12 +261,30 @@ def shrink_factors(args) -> list[float]:
     return values
 
 
-def initial_meshes(args, dataset, add=None, shrink: float = 0.0) -> list[tuple[float, object]]:
+def seal_quorums(args) -> list[float]:
+    """The ``--seal`` quorums that add candidates (those > 0, each once, each <= 1): its value,
+    else :data:`DEFAULT_SEAL` for a volume ``--init``; refused for a mesh."""
+    is_volume = args.init.suffix.lower() == ".h5"
+    text = getattr(args, "seal", None)
+    if text is None:
+        text = DEFAULT_SEAL if is_volume else "0"
+    values = [v for v in dict.fromkeys(wrap_factors(text, "--seal", "Q")) if v > 0]
+    if any(v > 1 for v in values):
+        raise InputError(f"--seal: each quorum must be in (0, 1] (0: none), got {text}")
+    if values and not is_volume:
+        raise InputError("--seal applies to a volume --init (.h5), not to a mesh")
+    return values
+
+
+def initial_meshes(args, dataset, add=None, shrink: float = 0.0,
+                   seal: float = 0.0) -> list[tuple[float, object]]:
     """[(wrap factor, start mesh)] of ``--init``: a volume's iso-surface wrapped at each
     ``--wrap`` factor × the range resolution of ``dataset``'s pulse, or a mesh file; ``add``:
     voxels (bool, the volume's grid) united with the volume's occupied set first; ``shrink``:
     the occupied set then shrunk by that factor × the range resolution
-    (:func:`recon.refine.shrink_occupancy`)."""
+    (:func:`recon.refine.shrink_occupancy`); ``seal``: sealed at that quorum of the dataset's
+    sensor positions, the midpoints of its transmitters and receivers
+    (:func:`recon.refine.seal_occupancy`)."""
     from ..refine import range_resolution, start_mesh
     import numpy as np
     path = args.init
@@ -279,11 +317,13 @@ def initial_meshes(args, dataset, add=None, shrink: float = 0.0) -> list[tuple[f
             grow = other.volume
         resolution = range_resolution(dataset.pulse, dataset.fs, dataset.sound_speed)
         beyond = args.grow_beyond * resolution
+        sensors = 0.5 * (np.asarray(dataset.tx) + np.asarray(dataset.rx)) if seal > 0 else None
         return [(k, start_mesh(vol.volume, vol.bounds, args.threshold, args.z_min,
                                min_component=min_component(vol),
                                wrap_radius=k * resolution, grow=grow,
                                grow_threshold=args.grow_threshold, grow_beyond=beyond,
-                               add=add, shrink_radius=shrink * resolution))
+                               add=add, shrink_radius=shrink * resolution,
+                               seal_quorum=seal, sensors=sensors))
                 for k in factors]
     if any(given or ()) or grow_path is not None:
         raise InputError("--wrap and --grow apply to a volume --init (.h5), not to a mesh")
@@ -316,14 +356,17 @@ def choose_candidate(candidates: list[dict]) -> int:
 
 
 def candidate_label(candidate: dict) -> str:
-    """``wrapK``, ``smoothL``, ``shrinkF-smoothL`` or ``shrinkF``, prefixed ``grown-`` for the
-    start grown by the unexplained data: a candidate's name in file names and messages."""
+    """``wrapK``, ``smoothL``, ``shrinkF-smoothL``, ``shrinkF`` or ``sealQ``, prefixed
+    ``grown-`` for the start grown by the unexplained data: a candidate's name in file names and
+    messages."""
     if candidate.get("smooth", 0):
         name = f"smooth{candidate['smooth']:g}"
     else:
         name = f"wrap{candidate['wrap']:g}"
     if candidate.get("shrink", 0):
         name = f"shrink{candidate['shrink']:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
+    if candidate.get("seal", 0):
+        name = f"seal{candidate['seal']:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
     return f"grown-{name}" if candidate.get("grown", 0) else name
 
 
@@ -387,14 +430,14 @@ def grown_start(args, dataset, chosen: dict, result, settings, index, level: flo
                                       "pings": n_pings})}
     if not added.any():
         return None, record
-    smooth, shrink = chosen["smooth"], chosen.get("shrink", 0.0)
-    wrap = 0.0 if smooth or shrink else chosen["wrap"]
+    smooth, shrink, seal = chosen["smooth"], chosen.get("shrink", 0.0), chosen.get("seal", 0.0)
+    wrap = 0.0 if smooth or shrink or seal else chosen["wrap"]
     [(_, mesh)] = initial_meshes(argparse.Namespace(**{**vars(args), "wrap": repr(wrap)}),
-                                 dataset, add=added, shrink=shrink)
+                                 dataset, add=added, shrink=shrink, seal=seal)
     if smooth:
         mesh = smoothed_start(mesh, smooth, settings.edge_length)
-    return {"wrap": chosen["wrap"], "smooth": smooth, "shrink": shrink, "grown": level,
-            "mesh": mesh}, record
+    return {"wrap": chosen["wrap"], "smooth": smooth, "shrink": shrink, "seal": seal,
+            "grown": level, "mesh": mesh}, record
 
 
 def checkpoint_store(args, dataset, settings, specs: list, level: float):
@@ -518,6 +561,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
                 store.save(name, res)
         candidates.append({"wrap": start["wrap"], "smooth": start["smooth"],
                            "shrink": start.get("shrink", 0.0),
+                           "seal": start.get("seal", 0.0),
                            "grown": start.get("grown", 0.0),
                            "final_misfit": res.final_misfit, "faces": len(res.faces),
                            **{f"{s}_misfit": res.stage_misfit(s) for s in ("envelope", "waveform")},
@@ -556,7 +600,7 @@ def refine_candidates(args, ds, settings, specs: list, level: float, store) -> i
         with atomic_path(args.history) as tmp:
             tmp.write_text(json.dumps({"settings": result.settings, "albedo": result.albedo,
                                        "wrap": chosen["wrap"], "smooth": chosen["smooth"],
-                                       "shrink": chosen["shrink"],
+                                       "shrink": chosen["shrink"], "seal": chosen["seal"],
                                        "grown": chosen["grown"],
                                        "seat": None if z_seat is None else {
                                            "below_m": z_seat, "vertices_moved": moved},
