@@ -170,6 +170,31 @@ def test_member_processes_respect_threads_cores_memory_and_timers(monkeypatch,
         limits.set_max_memory(None)
 
 
+def test_member_processes_follow_the_requested_variant_before_it_is_selected(monkeypatch,
+                                                                            point_target_scan):
+    """`SONARSIM_VARIANT=cuda_ad_mono recon nbp` plans its members before the variant is
+    selected: they must be planned (one process) and started for the GPU, not as CPU workers
+    of the default variant (they failed on a GPU machine without the CPU variant). Fails when
+    the plan falls back to the default variant."""
+    import drjit as dr
+    from recon.solver import members as m
+    from sonarsim import runtime
+    settings = gd.settings_for(ensemble=3)
+    monkeypatch.setattr(m, "available_cores", lambda: 8)
+    monkeypatch.setitem(runtime._state, "variant", None)
+    threads = dr.thread_count()
+    try:
+        dr.set_thread_count(8)
+        monkeypatch.setenv(runtime.VARIANT_ENV, "cuda_ad_mono")
+        assert m.run_variant() == "cuda_ad_mono"
+        assert m.member_processes(3, settings, GRID, False, point_target_scan) == 1
+        monkeypatch.delenv(runtime.VARIANT_ENV)
+        assert m.run_variant() == runtime.DEFAULT_VARIANT
+        assert m.member_processes(3, settings, GRID, False, point_target_scan) == 3
+    finally:
+        dr.set_thread_count(threads)
+
+
 def test_command_line_members_side_by_side_write_their_checkpoints(point_target_scan, tmp_path):
     """`recon gd --ensemble 2 --checkpoint`: the command holds the checkpoint's lock for the
     whole run, and the worker that fits the first member writes that checkpoint under it

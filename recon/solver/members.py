@@ -40,6 +40,14 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def run_variant() -> str:
+    """The variant this run uses: the one selected, else the one asked for
+    (``SONARSIM_VARIANT``): not yet selected, a GPU run would otherwise be planned, and its
+    workers started, as a CPU run."""
+    from sonarsim import runtime
+    return runtime.current_variant() or runtime.requested_variant()
+
+
 def member_processes(members: int, settings, grid, network: bool, dataset, timer=None) -> int:
     """How many members to fit at once: 1 (in this process, one after another) unless the
     fits are deterministic single-threaded CPU fits and there are spare cores; never more
@@ -51,7 +59,7 @@ def member_processes(members: int, settings, grid, network: bool, dataset, timer
     from .resources import memory_estimate
     if members < 2 or not settings.deterministic or timer is not None:
         return 1
-    if (runtime.current_variant() or runtime.DEFAULT_VARIANT).startswith("cuda"):
+    if run_variant().startswith("cuda"):
         return 1
     import drjit as dr
     count = min(members, available_cores(), int(dr.thread_count()))
@@ -68,8 +76,7 @@ def fit_members(jobs: list[dict], processes: int, *, progress: bool, callback, d
     the same ``dataset``) on ``processes`` worker processes at a time; returns their
     (volume, run) in the order of ``jobs``. A failed member stops the others; its error is
     raised here (a :class:`~sonarsim.errors.SonarsimError` as itself)."""
-    from sonarsim import runtime
-    variant = runtime.current_variant() or runtime.DEFAULT_VARIANT
+    variant = run_variant()
     reports: queue_module.Queue = queue_module.Queue()
     bar = progress_bar(iterations * len(jobs), progress, unit="it",
                        desc=f"{desc} ×{len(jobs)} ({processes} at once)", leave=False)
