@@ -203,7 +203,8 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
     thin parts kept). With ``wrap_radius`` > 0 (m) it is then wrapped (:func:`wrap_occupancy`), which seals the tunnels and pin-holes of a porous
     shell. Voxels below ``z_min`` (the ground's echo) are then cleared, so the object's
     surface closes above the ground; components with fewer than ``min_component`` × the
-    largest's faces are dropped (isolated blobs of the volume).
+    largest's faces are dropped (isolated blobs of the volume); with ``min_component`` 0 (a
+    solid's parts) the wrap keeps every piece too.
     """
     from .export import mesh_from_volume, normalized_magnitude, voxel_axes
     vol = np.array(volume, copy=True)
@@ -236,7 +237,9 @@ def start_mesh(volume: np.ndarray, bounds, threshold: float = 0.2, z_min: float 
         if shrink_radius > 0:
             occupied = shrink_occupancy(occupied, spacing, shrink_radius)
         if wrap_radius > 0:
-            occupied = wrap_occupancy(occupied, spacing, wrap_radius)
+            # a solid's parts (min_component 0) stay parts when wrapped, as unwrapped
+            occupied = wrap_occupancy(occupied, spacing, wrap_radius,
+                                      min_fraction=0.1 if min_component > 0 else 0.0)
         vol, threshold = occupied.astype(np.float32), 0.5
     vol[:, :, z < z_min] = 0
     mesh = mesh_from_volume(vol, bounds, threshold)

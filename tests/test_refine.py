@@ -544,25 +544,26 @@ def test_default_wrap_is_three_starts_for_a_volume_and_none_for_a_mesh(ball_scan
 def test_a_solid_keeps_its_small_separate_part_a_field_does_not(ball_scan, tmp_path):
     """A volume of a large block and a small separate cube (under 5 % of the block's faces): as
     an exported solid (params output = 'solid', whose floaters the solid already dropped) the
-    start keeps both parts; as a field the small one is dropped as a blob (fails when the
-    solid's parts are filtered like a field's)."""
+    start keeps both parts, unwrapped and wrapped; as a field the small one is dropped as a
+    blob (fails when the solid's parts are filtered like a field's, by the start's component
+    rule or by the wrap's)."""
     from recon.commands import refine as command
     from sonarsim.dataset import SonarDataset, Volume
     ds = SonarDataset.read(ball_scan)
     b = np.array([[-0.05, 0.05], [-0.05, 0.05], [0.0, 0.1]])
     vol = np.zeros((41, 41, 41), np.complex64)
-    vol[8:32, 8:32, 3:30] = 1
-    vol[36:39, 36:39, 20:23] = 1                                   # 27 voxels, apart
-    args = dict(threshold=0.5, z_min=0.005, wrap="0", grow=None, grow_threshold=0.2,
+    vol[5:25, 5:25, 3:30] = 1
+    vol[34:37, 34:37, 20:23] = 1                                   # 27 voxels, 2 cm apart
+    args = dict(threshold=0.5, z_min=0.005, wrap="0,1", grow=None, grow_threshold=0.2,
                 grow_beyond=0.0)
     count = {}
     for output in ("solid", "field"):
         Volume(volume=vol, bounds=b, method="nbp", params={"output": output}).write(
             tmp_path / f"{output}.h5")
-        [(_, mesh)] = command.initial_meshes(argparse.Namespace(init=tmp_path / f"{output}.h5",
-                                                                **args), ds)
-        count[output] = len(mesh.split(only_watertight=False))
-    assert count == {"solid": 2, "field": 1}
+        starts = command.initial_meshes(argparse.Namespace(init=tmp_path / f"{output}.h5",
+                                                           **args), ds)
+        count[output] = [len(mesh.split(only_watertight=False)) for _, mesh in starts]
+    assert count == {"solid": [2, 2], "field": [1, 1]}      # unwrapped and wrapped alike
 
 
 @pytest.mark.parametrize("radius", [0.003, 0.0065, 0.009, 0.0125])

@@ -337,7 +337,8 @@ def min_component(volume) -> float:
     an exported solid (``params['output'] == 'solid'``, `recon nbp`/`recon gd`), which dropped
     its floaters by its own rule and kept its separate parts on purpose (the Table-2 bunny's
     ear tips, 21 voxels after the solid's smoothing: its start's Chamfer² 1.57 × 10⁻⁴ without
-    them, 7.8 × 10⁻⁵ with; docs/refine.md "A solid's parts")."""
+    them, 7.8 × 10⁻⁵ with; docs/refine.md "A solid's parts"); its wrapped starts keep them
+    too."""
     return 0.0 if dict(volume.params or {}).get("output") == "solid" else 0.05
 
 
