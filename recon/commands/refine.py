@@ -199,22 +199,21 @@ def start_candidates(args, dataset, edge_length: float, specs: list[dict]) -> li
     smoothed at its level; one with ``seal`` Q > 0 from the unwrapped start sealed at Q (one
     call per Q)."""
     from ..refine import smoothed_start
-    plain = [spec for spec in specs if not (spec.get("shrink") or spec.get("seal"))]
+
+    def derived(spec) -> tuple[float, float]:
+        """(shrink, seal) of a spec: (0, 0) for a plain wrapped or smoothed start."""
+        return spec.get("shrink", 0.0), spec.get("seal", 0.0)
+    plain = [spec for spec in specs if not any(derived(spec))]
     if args.init.suffix.lower() == ".h5":      # every wrap factor and 0 for the smoothed ones, once
         wraps = ",".join(repr(k) for k in dict.fromkeys(spec["wrap"] for spec in plain))
         args = argparse.Namespace(**{**vars(args), "wrap": wraps})
     starts = dict(initial_meshes(args, dataset)) if plain else {}
-    shrunk = {f: initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}), dataset,
-                                shrink=f)[0][1]
-              for f in dict.fromkeys(spec["shrink"] for spec in specs if spec.get("shrink"))}
-    sealed = {q: initial_meshes(argparse.Namespace(**{**vars(args), "wrap": "0"}), dataset,
-                                seal=q)[0][1]
-              for q in dict.fromkeys(spec["seal"] for spec in specs if spec.get("seal"))}
+    unwrapped = argparse.Namespace(**{**vars(args), "wrap": "0"})
+    changed = {key: initial_meshes(unwrapped, dataset, shrink=key[0], seal=key[1])[0][1]
+               for key in dict.fromkeys(derived(spec) for spec in specs) if any(key)}
 
     def unsmoothed(spec):
-        if spec.get("seal"):
-            return sealed[spec["seal"]]
-        return shrunk[spec["shrink"]] if spec.get("shrink") else starts[spec["wrap"]]
+        return changed[derived(spec)] if any(derived(spec)) else starts[spec["wrap"]]
     return [{**spec, "mesh": smoothed_start(unsmoothed(spec), spec["smooth"], edge_length)
              if spec["smooth"] else unsmoothed(spec)} for spec in specs]
 
@@ -248,32 +247,33 @@ def candidate_specs(args) -> list[dict]:
             + [{"wrap": 0.0, "smooth": 0.0, "shrink": 0.0, "seal": q} for q in seals])
 
 
-def shrink_factors(args) -> list[float]:
-    """The ``--shrink`` factors that add candidates (those > 0, each once): its value, else
-    :data:`DEFAULT_SHRINK` for a volume ``--init``; refused for a mesh (it has no occupied set)."""
+def occupancy_values(args, attr: str, name: str, default: str,
+                     upper: float | None = None, noun: str = "value") -> list[float]:
+    """The values > 0 of the option ``--attr``, each once: its value, else ``default`` for a
+    volume ``--init``; each at most ``upper`` when given (``noun`` names them in the error);
+    refused for a mesh (it has no occupied set)."""
     is_volume = args.init.suffix.lower() == ".h5"
-    text = getattr(args, "shrink", None)
+    text = getattr(args, attr, None)
     if text is None:
-        text = DEFAULT_SHRINK if is_volume else "0"
-    values = [v for v in dict.fromkeys(wrap_factors(text, "--shrink", "F")) if v > 0]
+        text = default if is_volume else "0"
+    values = [v for v in dict.fromkeys(wrap_factors(text, f"--{attr}", name)) if v > 0]
+    if upper is not None and any(v > upper for v in values):
+        raise InputError(f"--{attr}: each {noun} must be in (0, {upper:g}] (0: none), got {text}")
     if values and not is_volume:
-        raise InputError("--shrink applies to a volume --init (.h5), not to a mesh")
+        raise InputError(f"--{attr} applies to a volume --init (.h5), not to a mesh")
     return values
+
+
+def shrink_factors(args) -> list[float]:
+    """The ``--shrink`` factors that add candidates (:func:`occupancy_values`, default
+    :data:`DEFAULT_SHRINK`)."""
+    return occupancy_values(args, "shrink", "F", DEFAULT_SHRINK)
 
 
 def seal_quorums(args) -> list[float]:
-    """The ``--seal`` quorums that add candidates (those > 0, each once, each <= 1): its value,
-    else :data:`DEFAULT_SEAL` for a volume ``--init``; refused for a mesh."""
-    is_volume = args.init.suffix.lower() == ".h5"
-    text = getattr(args, "seal", None)
-    if text is None:
-        text = DEFAULT_SEAL if is_volume else "0"
-    values = [v for v in dict.fromkeys(wrap_factors(text, "--seal", "Q")) if v > 0]
-    if any(v > 1 for v in values):
-        raise InputError(f"--seal: each quorum must be in (0, 1] (0: none), got {text}")
-    if values and not is_volume:
-        raise InputError("--seal applies to a volume --init (.h5), not to a mesh")
-    return values
+    """The ``--seal`` quorums that add candidates (:func:`occupancy_values`, default
+    :data:`DEFAULT_SEAL`), each <= 1."""
+    return occupancy_values(args, "seal", "Q", DEFAULT_SEAL, upper=1.0, noun="quorum")
 
 
 def initial_meshes(args, dataset, add=None, shrink: float = 0.0,
@@ -364,10 +364,9 @@ def candidate_label(candidate: dict) -> str:
         name = f"smooth{candidate['smooth']:g}"
     else:
         name = f"wrap{candidate['wrap']:g}"
-    if candidate.get("shrink", 0):
-        name = f"shrink{candidate['shrink']:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
-    if candidate.get("seal", 0):
-        name = f"seal{candidate['seal']:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
+    for key in ("shrink", "seal"):
+        if candidate.get(key, 0):
+            name = f"{key}{candidate[key]:g}" + (f"-{name}" if candidate.get("smooth", 0) else "")
     return f"grown-{name}" if candidate.get("grown", 0) else name
 
 
